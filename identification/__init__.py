@@ -1,0 +1,1 @@
+"""Excitation flights, flight-log datasets, symbolic regression, and the model file."""

@@ -1,0 +1,60 @@
+"""The `quadsr` console script: one subcommand per job, each registered by the package that owns it."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from quadsr import __version__
+
+# Each module exposes register(subparsers) -> None, adding its subcommands with set_defaults(func=...).
+# A subcommand's func takes the parsed args and returns an exit code.
+COMMAND_MODULES = (
+    "sitl.cli",
+    "identification.cli",
+    "controller.cli",
+    "quadsr.pipeline_cli",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the top-level parser with every available subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="quadsr",
+        description="Learn a quadrotor model with symbolic regression and fly it over MAVLink.",
+    )
+    parser.add_argument("--version", action="version", version=f"quadsr {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:  # that part is not built yet
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: parse, dispatch, and turn user mistakes into clear messages."""
+    from bridge.errors import UserError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UserError as exc:
+        print(f"quadsr {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print(f"quadsr {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

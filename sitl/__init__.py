@@ -1,0 +1,1 @@
+"""The simulated quadrotor: physics, sensors, and the simulator side of PX4's MAVLink HIL interface."""
