@@ -1,0 +1,323 @@
+"""The quadrotor's rigid-body dynamics: read motors, compute forces and moments, integrate (fixed-step RK4).
+
+State (17 floats): position NED (m), velocity NED (m/s), unit quaternion body->earth (w, x, y, z),
+body rates FRD (rad/s), rotor speeds (rad/s, PX4 order).
+
+    m dv/dt  = m g e3 + R (0, 0, -T) + R F_drag,b          F_drag,b,i = -Cd_i v_b,i |v_b,i|,  v_b = R^T v
+    J dw/dt  = -w x (J w) - w x (0, 0, h_z) + tau - D w    (tau, h_z from sitl.mixer)
+    dq/dt    = q (x) (0, w) / 2
+    dW_i/dt  = (W_cmd,i - W_i) / Tm                        (sitl.motors)
+
+One exchange step (4 ms) holds the commanded speeds and takes 4 ms / physics_step RK4 substeps; after each
+the quaternion is renormalised and the ground contact (sitl.ground) resolved.
+
+The derivative is written with plain floats: the step runs 250 times per simulated second inside a lockstep
+loop that must reach thousands of steps per wall second, and numpy is slower than floats for 3-vectors.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
+from sitl.ground import make_ground
+from sitl.mixer import QuadXMixer
+from sitl.motors import Motors
+
+EXCHANGE_STEP_USEC = 4000
+
+
+def _inverse3(m: tuple) -> tuple:
+    """Inverse of a 3x3 matrix (rows of floats), as 9 floats row-major."""
+    (a, b, c), (d, e, f), (g, h, i) = m
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return (
+        (e * i - f * h) / det, (c * h - b * i) / det, (b * f - c * e) / det,
+        (f * g - d * i) / det, (a * i - c * g) / det, (c * d - a * f) / det,
+        (d * h - e * g) / det, (b * g - a * h) / det, (a * e - b * d) / det,
+    )
+
+
+Derivative = Callable[[Sequence[float], Sequence[float]], tuple[float, ...]]
+
+
+def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer) -> Derivative:
+    """The state derivative f(state, cmd) -> 17 floats (see the module docstring), constants bound once."""
+    itm = motors.inv_time_constant
+    ct, k, cm, jm = mixer.ct, mixer.k, mixer.cm, mixer.jm
+    g = vehicle.gravity
+    im = 1.0 / vehicle.mass
+    j00, j01, j02, j10, j11, j12, j20, j21, j22 = (x for row in vehicle.inertia for x in row)
+    i00, i01, i02, i10, i11, i12, i20, i21, i22 = _inverse3(vehicle.inertia)
+    cdx, cdy, cdz = vehicle.drag.body_quadratic
+    has_drag = cdx != 0.0 or cdy != 0.0 or cdz != 0.0
+    d0, d1, d2 = vehicle.drag.angular_damping
+
+    def derivative(s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
+        _, _, _, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
+        # motors: first-order lag toward the commanded speeds
+        c1, c2, c3, c4 = cmd
+        dw1 = (c1 - w1) * itm
+        dw2 = (c2 - w2) * itm
+        dw3 = (c3 - w3) * itm
+        dw4 = (c4 - w4) * itm
+        # forces and moments of the rotors (body FRD): QuadXMixer.wrench, inlined as this is the hot path
+        s1, s2, s3, s4 = w1 * w1, w2 * w2, w3 * w3, w4 * w4
+        thrust = ct * (s1 + s2 + s3 + s4)
+        tx = k * (-s1 + s2 + s3 - s4)
+        ty = k * (s1 - s2 + s3 - s4)
+        tz = cm * (s1 + s2 - s3 - s4)
+        hz = jm * (-w1 - w2 + w3 + w4)
+        # rotation body -> earth
+        xx, yy, zz = qx * qx, qy * qy, qz * qz
+        xy, xz, yz = qx * qy, qx * qz, qy * qz
+        wxq, wyq, wzq = qw * qx, qw * qy, qw * qz
+        r00 = 1.0 - 2.0 * (yy + zz)
+        r01 = 2.0 * (xy - wzq)
+        r02 = 2.0 * (xz + wyq)
+        r10 = 2.0 * (xy + wzq)
+        r11 = 1.0 - 2.0 * (xx + zz)
+        r12 = 2.0 * (yz - wxq)
+        r20 = 2.0 * (xz - wyq)
+        r21 = 2.0 * (yz + wxq)
+        r22 = 1.0 - 2.0 * (xx + yy)
+        # body-frame force: thrust and quadratic drag on the body-frame velocity R^T v
+        fbz = -thrust
+        if has_drag:
+            ubx = r00 * vx + r10 * vy + r20 * vz
+            uby = r01 * vx + r11 * vy + r21 * vz
+            ubz = r02 * vx + r12 * vy + r22 * vz
+            fbx = -cdx * ubx * abs(ubx)
+            fby = -cdy * uby * abs(uby)
+            fbz -= cdz * ubz * abs(ubz)
+        else:
+            fbx = fby = 0.0
+        # translational: a = g e3 + R F_b / m
+        ax = (r00 * fbx + r01 * fby + r02 * fbz) * im
+        ay = (r10 * fbx + r11 * fby + r12 * fbz) * im
+        az = (r20 * fbx + r21 * fby + r22 * fbz) * im + g
+        # attitude kinematics: dq = q (x) (0, w) / 2
+        dqw = 0.5 * (-qx * wx - qy * wy - qz * wz)
+        dqx = 0.5 * (qw * wx + qy * wz - qz * wy)
+        dqy = 0.5 * (qw * wy - qx * wz + qz * wx)
+        dqz = 0.5 * (qw * wz + qx * wy - qy * wx)
+        # rotational: J dw = -w x (J w + (0, 0, hz)) + tau - D w
+        hx = j00 * wx + j01 * wy + j02 * wz
+        hy = j10 * wx + j11 * wy + j12 * wz
+        hzb = j20 * wx + j21 * wy + j22 * wz + hz
+        mx = tx - (wy * hzb - wz * hy) - d0 * wx
+        my = ty - (wz * hx - wx * hzb) - d1 * wy
+        mz = tz - (wx * hy - wy * hx) - d2 * wz
+        return (
+            vx, vy, vz, ax, ay, az, dqw, dqx, dqy, dqz,
+            i00 * mx + i01 * my + i02 * mz,
+            i10 * mx + i11 * my + i12 * mz,
+            i20 * mx + i21 * my + i22 * mz,
+            dw1, dw2, dw3, dw4,
+        )
+
+    return derivative
+
+
+class Quadrotor:
+    """A simulated quadrotor: reset it, then step(throttles) advances one 4 ms exchange step."""
+
+    def __init__(self, vehicle: VehicleConfig):
+        self.vehicle = vehicle
+        self.motors = Motors(vehicle)
+        self.mixer = QuadXMixer(vehicle)
+        self.ground = make_ground(vehicle.ground)
+        self.substeps = vehicle.simulation.substeps
+        self.h = EXCHANGE_STEP / self.substeps
+        self._g = vehicle.gravity
+        self._inv_m = 1.0 / vehicle.mass
+        self._cd = vehicle.drag.body_quadratic
+        self._f = make_derivative(vehicle, self.motors, self.mixer)
+        self._cmd = (0.0, 0.0, 0.0, 0.0)
+        self._s: list[float] = [0.0] * 17
+        self._time_usec = 0
+        self._on_ground = False
+        pos = vehicle.initial.position
+        self.reset(position=pos, yaw=vehicle.initial.yaw)
+
+    # ------------------------------------------------------------------------------------------------------
+    # Setting the state
+
+    def reset(
+        self,
+        position: Sequence[float] = (0.0, 0.0, 0.0),
+        yaw: float = 0.0,
+        rotor_speeds: Sequence[float] | None = None,
+        *,
+        velocity: Sequence[float] = (0.0, 0.0, 0.0),
+        rates: Sequence[float] = (0.0, 0.0, 0.0),
+        roll: float = 0.0,
+        pitch: float = 0.0,
+    ) -> None:
+        """Put the vehicle at position NED (m) with attitude ZYX (rad), velocity NED (m/s), rates FRD (rad/s).
+
+        Rotor speeds (rad/s) default to 0; the held command is set to them, so a step with the matching
+        throttles keeps them. Time restarts at 0. With a ground plane a start below z = 0 is lifted to it.
+        """
+        speeds = (0.0, 0.0, 0.0, 0.0) if rotor_speeds is None else tuple(float(w) for w in rotor_speeds)
+        if len(speeds) != 4:
+            raise ValueError(f"expected 4 rotor speeds, got {len(speeds)}")
+        cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
+        cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
+        cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+        q = (
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        )
+        self._s = [
+            *(float(p) for p in position), *(float(v) for v in velocity), *q,
+            *(float(w) for w in rates), *speeds,
+        ]
+        if len(self._s) != 17:
+            raise ValueError("position, velocity and rates must have 3 components each")
+        self._cmd = speeds
+        self._time_usec = 0
+        self._on_ground = False
+        if self.vehicle.ground == "plane" and self._s[2] >= 0.0:
+            self._s[2] = 0.0
+            self._on_ground = self.ground.apply(self._s)
+
+    # ------------------------------------------------------------------------------------------------------
+    # Stepping
+
+    def step(self, throttles: Sequence[float]) -> None:
+        """Advance one 4 ms exchange step holding four motor throttles in [0, 1] (PX4 order)."""
+        cmd = self.motors.commanded_speeds(throttles)
+        self._cmd = cmd
+        h = self.h
+        hh = 0.5 * h
+        h6 = h / 6.0
+        f = self._f
+        apply_ground = self.ground.apply
+        s = self._s
+        for _ in range(self.substeps):
+            # zip without strict=: all are 17 long by construction, and strict= doubles the cost here
+            k1 = f(s, cmd)
+            k2 = f([a + hh * b for a, b in zip(s, k1)], cmd)  # noqa: B905
+            k3 = f([a + hh * b for a, b in zip(s, k2)], cmd)  # noqa: B905
+            k4 = f([a + h * b for a, b in zip(s, k3)], cmd)  # noqa: B905
+            s = [a + h6 * (b + 2.0 * (c + d) + e) for a, b, c, d, e in zip(s, k1, k2, k3, k4)]  # noqa: B905
+            qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+            n = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            s[6] = qw * n
+            s[7] = qx * n
+            s[8] = qy * n
+            s[9] = qz * n
+            self._on_ground = apply_ground(s)
+        self._s = s
+        self._time_usec += EXCHANGE_STEP_USEC
+
+    def _derivative(self, s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
+        """d(state)/dt for the 17-float state under commanded rotor speeds cmd (rad/s)."""
+        return self._f(s, cmd)
+
+    # ------------------------------------------------------------------------------------------------------
+    # Reading the state
+
+    @property
+    def time_usec(self) -> int:
+        """Simulated time since reset, integer microseconds (a multiple of 4000)."""
+        return self._time_usec
+
+    @property
+    def position(self) -> tuple[float, float, float]:
+        """Position NED, m."""
+        return self._s[0], self._s[1], self._s[2]
+
+    @property
+    def velocity(self) -> tuple[float, float, float]:
+        """Velocity NED, m/s."""
+        return self._s[3], self._s[4], self._s[5]
+
+    @property
+    def quaternion(self) -> tuple[float, float, float, float]:
+        """Attitude as a unit quaternion (w, x, y, z), body FRD -> earth NED."""
+        return self._s[6], self._s[7], self._s[8], self._s[9]
+
+    @property
+    def euler(self) -> tuple[float, float, float]:
+        """Attitude as ZYX Euler angles (phi roll, theta pitch, psi yaw), rad."""
+        qw, qx, qy, qz = self._s[6], self._s[7], self._s[8], self._s[9]
+        phi = math.atan2(2.0 * (qw * qx + qy * qz), 1.0 - 2.0 * (qx * qx + qy * qy))
+        sin_theta = 2.0 * (qw * qy - qz * qx)
+        theta = math.asin(max(-1.0, min(1.0, sin_theta)))
+        psi = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        return phi, theta, psi
+
+    @property
+    def rates(self) -> tuple[float, float, float]:
+        """Body angular rates FRD (p, q, r), rad/s."""
+        return self._s[10], self._s[11], self._s[12]
+
+    @property
+    def rotor_speeds(self) -> tuple[float, float, float, float]:
+        """True rotor speeds after the motor lag, rad/s, PX4 order."""
+        return self._s[13], self._s[14], self._s[15], self._s[16]
+
+    @property
+    def commanded_speeds(self) -> tuple[float, float, float, float]:
+        """Rotor speeds the motors are lagging toward (from the last throttles), rad/s."""
+        return self._cmd
+
+    @property
+    def on_ground(self) -> bool:
+        """True while the vehicle rests on the ground plane."""
+        return self._on_ground
+
+    @property
+    def state(self) -> tuple[float, ...]:
+        """The full 17-float state (see the module docstring)."""
+        return tuple(self._s)
+
+    def acceleration_earth(self) -> tuple[float, float, float]:
+        """Linear acceleration NED, m/s^2, at the current state (0 while resting on the ground)."""
+        if self._on_ground:
+            return 0.0, 0.0, 0.0
+        d = self._derivative(self._s, self._cmd)
+        return d[3], d[4], d[5]
+
+    def angular_acceleration(self) -> tuple[float, float, float]:
+        """Body angular acceleration FRD, rad/s^2, at the current state (0 while resting on the ground)."""
+        if self._on_ground:
+            return 0.0, 0.0, 0.0
+        d = self._derivative(self._s, self._cmd)
+        return d[10], d[11], d[12]
+
+    def specific_force_body(self) -> tuple[float, float, float]:
+        """What an ideal accelerometer measures, FRD m/s^2: R^T (a - g e3); (0, 0, -g) at rest, level.
+
+        In flight that is the non-gravitational force over the mass, thrust and drag, already in body axes.
+        """
+        s = self._s
+        qw, qx, qy, qz = s[6], s[7], s[8], s[9]
+        if self._on_ground:
+            # a = 0: R^T (0, 0, -g)
+            g = self._g
+            return (-g * 2.0 * (qx * qz - qw * qy), -g * 2.0 * (qy * qz + qw * qx),
+                    -g * (1.0 - 2.0 * (qx * qx + qy * qy)))
+        mixer = self.mixer
+        w1, w2, w3, w4 = s[13], s[14], s[15], s[16]
+        fbz = -mixer.ct * (w1 * w1 + w2 * w2 + w3 * w3 + w4 * w4)
+        fbx = fby = 0.0
+        cdx, cdy, cdz = self._cd
+        if cdx != 0.0 or cdy != 0.0 or cdz != 0.0:
+            vx, vy, vz = s[3], s[4], s[5]
+            ubx = (1.0 - 2.0 * (qy * qy + qz * qz)) * vx + 2.0 * (qx * qy + qw * qz) * vy \
+                + 2.0 * (qx * qz - qw * qy) * vz
+            uby = 2.0 * (qx * qy - qw * qz) * vx + (1.0 - 2.0 * (qx * qx + qz * qz)) * vy \
+                + 2.0 * (qy * qz + qw * qx) * vz
+            ubz = 2.0 * (qx * qz + qw * qy) * vx + 2.0 * (qy * qz - qw * qx) * vy \
+                + (1.0 - 2.0 * (qx * qx + qy * qy)) * vz
+            fbx = -cdx * ubx * abs(ubx)
+            fby = -cdy * uby * abs(uby)
+            fbz -= cdz * ubz * abs(ubz)
+        im = self._inv_m
+        return fbx * im, fby * im, fbz * im
