@@ -1,0 +1,190 @@
+"""How fast the SITL steps: physics alone, the bare MAVLink messaging ceiling, and the full SITL in lockstep.
+
+Prints, each as the median of --repeats runs:
+  physics       Quadrotor.step + SensorModel.sample, no MAVLink (steps/s)
+  ceiling       a bare pymavlink HIL_SENSOR -> HIL_ACTUATOR_CONTROLS ping-pong between two processes over
+                loopback UDP (round trips/s): what one lockstep exchange can cost at best
+  full          `quadsr sitl` in lockstep with a trivial companion (bridge.lockstep.LockstepClient, constant
+                throttles) (steps/s)
+  full/ceiling  the ratio (floor 0.5), and full >= 5000 steps/s (floor)
+It also prints the CPU time per step of the SITL process and of the companion.
+
+Usage: python bench/sitl_speed.py [--steps 20000] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ECHO_READY = "echo ready"
+
+
+def physics_rate(steps: int) -> float:
+    """Steps/s of Quadrotor.step + SensorModel.sample alone (default vehicle, realistic sensors)."""
+    from bridge.vehicle import load_vehicle
+    from sitl.dynamics import Quadrotor
+    from sitl.sensors import SensorModel
+
+    vehicle = load_vehicle("fang-chen-buaa").with_overrides(ground="none", initial_position=(0, 0, -100.0))
+    quad = Quadrotor(vehicle)
+    sensors = SensorModel(vehicle.sensors, vehicle.home, 0)
+    throttles = (0.6, 0.61, 0.6, 0.61)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        quad.step(throttles)
+        sensors.sample(quad)
+    return steps / (time.perf_counter() - t0)
+
+
+def echo_server() -> None:
+    """The ping-pong's other process: answer each HIL_SENSOR with HIL_ACTUATOR_CONTROLS (bare pymavlink)."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    print(f"{ECHO_READY} {sock.getsockname()[1]}", flush=True)
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    mav.robust_parsing = True
+    controls = [0.6] * 4 + [0.0] * 12
+    while True:
+        data, addr = sock.recvfrom(65535)
+        if data == b"quit":
+            return
+        for msg in mav.parse_buffer(data) or []:
+            if msg.get_msgId() == mavlink.MAVLINK_MSG_ID_HIL_SENSOR:
+                reply = mavlink.MAVLink_hil_actuator_controls_message(msg.time_usec, controls, 129, 1)
+                sock.sendto(reply.pack(mav), addr)
+                mav.seq = (mav.seq + 1) % 256
+
+
+def ceiling_rate(steps: int) -> float:
+    """Round trips/s of a bare pymavlink HIL_SENSOR/HIL_ACTUATOR_CONTROLS ping-pong with a second process."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    proc = subprocess.Popen([sys.executable, __file__, "--echo"], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        port = int(line.split()[-1])
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        sock.connect(("127.0.0.1", port))
+        mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=51)
+        mav.robust_parsing = True
+        t0 = time.perf_counter()
+        for k in range(steps):
+            t = k * 4000
+            sensor = mavlink.MAVLink_hil_sensor_message(
+                t, 0.01, -0.02, -9.8, 0.001, 0.002, 0.003, 0.2, 0.01, 0.43, 955.0, 0.0, 488.0, 12.0, 0x3F, 0
+            )
+            sock.send(sensor.pack(mav))
+            mav.seq = (mav.seq + 1) % 256
+            got = False
+            while not got:
+                for msg in mav.parse_buffer(sock.recv(65535)) or []:
+                    got = got or (msg.get_msgId() == mavlink.MAVLINK_MSG_ID_HIL_ACTUATOR_CONTROLS
+                                  and msg.time_usec == t)
+        rate = steps / (time.perf_counter() - t0)
+        sock.send(b"quit")
+        sock.close()
+        return rate
+    finally:
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process, s (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, float]:
+    """(steps/s, SITL CPU us/step, companion CPU us/step): `quadsr sitl` in lockstep with a LockstepClient."""
+    from bridge.lockstep import LockstepClient
+
+    cmd = [sys.executable, "-m", "quadsr.cli", "sitl", "--hil", "udp:127.0.0.1:0",
+           "--gcs", f"udp:127.0.0.1:{_free_port()}", "--status-interval", "0", *extra]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        m = re.search(r"listening for the companion on (udp:[\d.]+:\d+)", line)
+        if m is None:
+            raise RuntimeError(f"unexpected SITL output: {line!r}")
+        with LockstepClient(m.group(1), timeout=5.0) as client:
+            client.connect(10.0)
+            throttles = (0.6, 0.6, 0.6, 0.6)
+            for _ in range(200):  # warm up
+                client.step(throttles)
+            sitl0, own0, t0 = _cpu_seconds(proc.pid), time.process_time(), time.perf_counter()
+            for _ in range(steps):
+                client.step(throttles)
+            wall = time.perf_counter() - t0
+            sitl_cpu = (_cpu_seconds(proc.pid) - sitl0) / steps * 1e6
+            return steps / wall, sitl_cpu, (time.process_time() - own0) / steps * 1e6
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def main() -> int:
+    """Run the three measurements --repeats times and print medians."""
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=20000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--echo", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.echo:
+        echo_server()
+        return 0
+    names = ("physics", "ceiling", "full", "sitl_cpu", "client_cpu")
+    results: dict[str, list[float]] = {k: [] for k in names}
+    for i in range(args.repeats):
+        results["physics"].append(physics_rate(args.steps))
+        results["ceiling"].append(ceiling_rate(args.steps))
+        rate, sitl_cpu, client_cpu = full_rate(args.steps)
+        results["full"].append(rate)
+        results["sitl_cpu"].append(sitl_cpu)
+        results["client_cpu"].append(client_cpu)
+        print(f"run {i + 1}: " + ", ".join(f"{k} {v[-1]:,.0f}" for k, v in results.items()), flush=True)
+    med = {k: statistics.median(v) for k, v in results.items()}
+    ratio = med["full"] / med["ceiling"]
+    print(f"cpu cores: {os.cpu_count()}, steps per run: {args.steps}, medians of {args.repeats} runs")
+    print(f"physics alone (Quadrotor.step + SensorModel.sample): {med['physics']:,.0f} steps/s "
+          f"({1e6 / med['physics']:.1f} us/step)")
+    print(f"messaging ceiling (bare pymavlink ping-pong, 2 processes): {med['ceiling']:,.0f} round trips/s "
+          f"({1e6 / med['ceiling']:.1f} us)")
+    print(f"full SITL in lockstep (LockstepClient, constant throttles): {med['full']:,.0f} steps/s "
+          f"({1e6 / med['full']:.1f} us/step, {med['full'] * 0.004:.1f}x real time)")
+    print(f"  CPU per step: SITL process {med['sitl_cpu']:.0f} us (physics, sensors, frames, UDP I/O), "
+          f"companion {med['client_cpu']:.0f} us")
+    print(f"full / ceiling: {ratio:.2f}")
+    physics_share = med["full"] / med["physics"]
+    print(f"physics share of a full step: {physics_share:.0%}")
+    ok = med["full"] >= 5000 and ratio >= 0.5 and physics_share < 0.5
+    print(f"floors (full >= 5000 steps/s, full/ceiling >= 0.5, physics not the main cost): "
+          f"{'MET' if ok else 'NOT MET'}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

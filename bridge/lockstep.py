@@ -1,0 +1,169 @@
+"""The companion's side of the HIL lockstep protocol: `step(throttles) -> Observation`.
+
+The client sits in the autopilot's seat (sysid 1, compid 1): it connects by sending HEARTBEAT to the SITL's
+HIL address until the first step arrives, then answers each step's HIL_SENSOR with HIL_ACTUATOR_CONTROLS
+stamped with that step's time_usec, and waits for the next step.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from bridge.errors import UserError
+from bridge.link import Endpoint, UdpLink, parse_endpoint
+from bridge.messages import (
+    Observation,
+    ObservationAssembler,
+    encode_heartbeat,
+    encode_hil_actuator_controls,
+)
+from bridge.signing import Signing
+from bridge.stats import LinkStats
+from bridge.tlog import TlogWriter
+
+HEARTBEAT_PERIOD_S = 0.1  # while connecting
+STEP_USEC = 4000
+
+
+class LinkLost(UserError):
+    """Nothing (or no new step) arrived from the SITL within the timeout."""
+
+
+def _as_signing(signing: Signing | str | Path | bytes | None) -> Signing | None:
+    if signing is None or isinstance(signing, Signing):
+        return signing
+    if isinstance(signing, (bytes, bytearray)):
+        return Signing(bytes(signing))
+    return Signing.from_file(signing)
+
+
+def _clean_throttle(value: float) -> float:
+    v = float(value)
+    if not math.isfinite(v) or v < 0.0:  # NaN/inf -> motor off; SITL would clamp anyway
+        return 1.0 if v == math.inf else 0.0
+    return 1.0 if v > 1.0 else v
+
+
+class LockstepClient:
+    """Steps the SITL in lockstep over its HIL link; one Observation per 4 ms step."""
+
+    def __init__(
+        self,
+        hil: str | Endpoint = "udp:127.0.0.1:4560",
+        signing: Signing | str | Path | bytes | None = None,
+        tlog: TlogWriter | str | Path | None = None,
+        timeout: float = 1.0,
+        system_id: int = 1,
+        component_id: int = 1,
+    ):
+        self.endpoint = hil if isinstance(hil, Endpoint) else parse_endpoint(hil)
+        if not timeout > 0:
+            raise UserError(f"lockstep timeout must be > 0 s (got {timeout})")
+        self.timeout = float(timeout)
+        self.link = UdpLink(
+            local=None,
+            remote=self.endpoint,
+            system_id=system_id,
+            component_id=component_id,
+            signing=_as_signing(signing),
+            tlog=str(tlog) if isinstance(tlog, Path) else tlog,
+        )
+        self.assembler = ObservationAssembler()
+        self.observation: Observation | None = None
+        self.steps = 0
+        self.status_texts: list[str] = []  # STATUSTEXTs from the SITL (failsafe reasons), in order
+
+    @property
+    def stats(self) -> LinkStats:
+        """The HIL link's counters."""
+        return self.link.stats
+
+    def connect(self, timeout: float = 10.0) -> Observation:
+        """Send HEARTBEAT every 0.1 s until the SITL's first step arrives; return it (normally time 0)."""
+        deadline = time.monotonic() + timeout
+        heartbeat = encode_heartbeat()
+        next_beat = 0.0
+        while True:
+            now = time.monotonic()
+            if now >= deadline:
+                raise LinkLost(
+                    f"no SITL answered at {self.endpoint} within {timeout:g} s",
+                    hint="start it with `quadsr sitl` and check that --hil and --signing-key match",
+                )
+            if now >= next_beat:
+                self.link.send([heartbeat])
+                next_beat = now + HEARTBEAT_PERIOD_S
+            obs = self._latest(self.link.recv_split(min(next_beat, deadline) - now))
+            if obs is not None:
+                self.observation = obs
+                return obs
+
+    def step(self, throttles: Sequence[float]) -> Observation:
+        """Send throttles (4, in [0,1]; NaN -> 0, clipped) for the current step; return the next step."""
+        current = self.observation
+        if current is None:
+            raise RuntimeError("LockstepClient.step() before connect()")
+        if len(throttles) != 4:
+            raise ValueError(f"step() takes 4 motor throttles, got {len(throttles)}")
+        clean = [_clean_throttle(v) for v in throttles]
+        cmd = encode_hil_actuator_controls(current.time_usec, clean)
+        self.link.send([cmd])
+        obs = self.wait_observation(self.timeout)
+        self.steps += 1
+        return obs
+
+    def step_speeds(self, speeds_rad_s: Sequence[float], motor_curve: Any) -> Observation:
+        """step() with commanded rotor speeds (rad/s) turned into throttles by the vehicle's motor curve."""
+        return self.step([float(motor_curve.throttle_for_speed(float(w))) for w in speeds_rad_s])
+
+    def wait_observation(self, timeout: float | None = None) -> Observation:
+        """Wait (up to timeout s, default the client's) for a step newer than the current one and return it.
+
+        If the SITL ran ahead (failsafe pacing), the newest step already queued is returned.
+        """
+        timeout = self.timeout if timeout is None else timeout
+        after = -1 if self.observation is None else self.observation.time_usec
+        deadline = time.monotonic() + timeout
+        link = self.link
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise LinkLost(
+                    f"no step from the SITL at {self.endpoint} within {timeout:g} s "
+                    f"(last step t = {max(after, 0) * 1e-6:.3f} s)",
+                    hint="did the SITL stop, or go into failsafe? its status line says why",
+                )
+            obs = self._latest(link.recv_split(remaining), after)
+            if obs is not None:
+                if obs.time_usec != after + STEP_USEC:
+                    # Not the step right after ours: the SITL did not wait for us; catch up to what's queued.
+                    newer = self._latest(link.drain_split(), obs.time_usec)
+                    if newer is not None:
+                        obs = newer
+                self.observation = obs
+                return obs
+
+    def _latest(self, frames: list[tuple], after: int = -1) -> Observation | None:
+        latest = None
+        for obs in self.assembler.feed_frames(frames):
+            for m in obs.extras:
+                if m.get_type() == "STATUSTEXT":
+                    self.status_texts.append(m.text)
+            if obs.time_usec > after:
+                latest = obs
+                after = obs.time_usec
+        return latest
+
+    def close(self) -> None:
+        """Close the link; nothing more is sent (the SITL goes to failsafe after its wait bound)."""
+        self.link.close()
+
+    def __enter__(self) -> LockstepClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

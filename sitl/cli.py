@@ -1,0 +1,148 @@
+"""`quadsr sitl`: run the simulated quadrotor and serve its HIL and ground-tool links."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from bridge.errors import UserError
+
+if TYPE_CHECKING:
+    from bridge.vehicle import VehicleConfig
+    from sitl.server import SitlOptions
+
+DEFAULT_VEHICLE = "fang-chen-buaa"
+DEFAULT_HIL = "udp:127.0.0.1:4560"
+DEFAULT_GCS = "udp:127.0.0.1:14550"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the `sitl` subcommand."""
+    p = subparsers.add_parser(
+        "sitl",
+        help="run the simulated quadrotor (HIL link for a companion, ground link for GCS/offboard tools)",
+        description=(
+            "Simulate a quadrotor and serve PX4's simulator protocol over UDP MAVLink 2. A companion (the "
+            "identification client or the controller) connects to the HIL address and steps the simulation; "
+            "ground tools (QGroundControl, MAVSDK) receive PX4-like telemetry on the ground link."
+        ),
+    )
+    p.add_argument("--vehicle", default=DEFAULT_VEHICLE, metavar="FILE|NAME",
+                   help=f"vehicle YAML file or bundled name (default {DEFAULT_VEHICLE})")
+    p.add_argument("--hil", default=DEFAULT_HIL, metavar="udp:HOST:PORT",
+                   help=f"address to listen on for the companion (default {DEFAULT_HIL})")
+    p.add_argument("--gcs", default=DEFAULT_GCS, metavar="udp:HOST:PORT",
+                   help=f"ground station to send telemetry to (default {DEFAULT_GCS})")
+    p.add_argument("--offboard", default=None, metavar="udp:HOST:PORT",
+                   help="second ground-tool address, e.g. udp:127.0.0.1:14540 for MAVSDK (default none)")
+    p.add_argument("--no-gcs", action="store_true", help="do not send to the --gcs address")
+    p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                   help="lockstep: one step per companion reply (default); realtime: paced to the wall clock")
+    p.add_argument("--log", default=None, metavar="FILE.tlog", help="record every HIL frame to a .tlog file")
+    p.add_argument("--seed", type=int, default=None, help="sensor noise seed (default: the vehicle file's)")
+    p.add_argument("--signing-key", default=None, metavar="FILE",
+                   help="MAVLink 2 signing key (32 raw bytes or 64 hex digits): refuse unsigned commands")
+    p.add_argument("--sensors", choices=("realistic", "ideal"), default=None,
+                   help="sensor noise preset (default: the vehicle file's); ideal is noise-free")
+    p.add_argument("--ground", choices=("plane", "none"), default=None,
+                   help="ground model (default: the vehicle file's); none for excitation started at altitude")
+    p.add_argument("--initial-position", default=None, metavar="N,E,D",
+                   help="start position NED in m, e.g. 0,0,-50 (default: the vehicle file's); "
+                        "write --initial-position=-5,0,-50 when N is negative")
+    p.add_argument("--initial-rotor-speed", default="0", metavar="W|hover",
+                   help="start rotor speed in rad/s, or 'hover' (trimmed hover, e.g. with --ground none)")
+    p.add_argument("--lockstep-timeout", type=float, default=1.0, metavar="S",
+                   help="lockstep: wall seconds to wait for a reply before the failsafe (default 1)")
+    p.add_argument("--realtime-timeout", type=float, default=0.2, metavar="S",
+                   help="realtime: simulated seconds without commands before the failsafe (default 0.2)")
+    p.add_argument("--status-interval", type=float, default=5.0, metavar="S",
+                   help="wall seconds between status lines (default 5; 0 turns them off)")
+    p.add_argument("--max-steps", type=int, default=None, metavar="N", help="exit after N steps")
+    p.add_argument("--companion-sysid", type=int, default=1, metavar="ID",
+                   help="system id the companion sends from (default 1); other ids are dropped")
+    p.set_defaults(func=run)
+
+
+def options_from_args(args: argparse.Namespace) -> SitlOptions:
+    """Validate the parsed flags into SitlOptions (UserError naming the flag on a bad value)."""
+    from bridge.link import parse_endpoint
+    from bridge.signing import load_key
+    from bridge.vehicle import load_vehicle
+    from sitl.server import SitlOptions
+
+    initial_position = _triple(args.initial_position, "--initial-position") if args.initial_position else None
+    if args.seed is not None and args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    vehicle = load_vehicle(args.vehicle).with_overrides(
+        ground=args.ground, initial_position=initial_position, sensors=args.sensors, seed=args.seed
+    )
+    rotor_speed = _rotor_speed(args.initial_rotor_speed, vehicle)
+    timeouts = (("--lockstep-timeout", args.lockstep_timeout), ("--realtime-timeout", args.realtime_timeout))
+    for flag, value in timeouts:
+        if not (math.isfinite(value) and value > 0):
+            raise UserError(f"{flag} must be a positive number of seconds, got {value}")
+    if not (math.isfinite(args.status_interval) and args.status_interval >= 0):
+        raise UserError(f"--status-interval must be >= 0 seconds, got {args.status_interval}")
+    if args.max_steps is not None and args.max_steps < 0:
+        raise UserError(f"--max-steps must be >= 0, got {args.max_steps}")
+    if not 1 <= args.companion_sysid <= 255:
+        raise UserError(f"--companion-sysid must be 1..255, got {args.companion_sysid}")
+    ground_endpoints = []
+    if not args.no_gcs:
+        ground_endpoints.append(parse_endpoint(args.gcs))
+    if args.offboard:
+        ground_endpoints.append(parse_endpoint(args.offboard))
+    log = Path(args.log) if args.log else None
+    if log is not None and log.is_dir():
+        raise UserError(f"--log {log} is a directory", hint="give a file name such as flight.tlog")
+    return SitlOptions(
+        vehicle=vehicle,
+        hil=parse_endpoint(args.hil),
+        ground=ground_endpoints,
+        mode=args.mode,
+        log=log,
+        signing_key=load_key(args.signing_key) if args.signing_key else None,
+        initial_rotor_speed=rotor_speed,
+        lockstep_timeout=args.lockstep_timeout,
+        realtime_timeout=args.realtime_timeout,
+        status_interval=args.status_interval,
+        max_steps=args.max_steps,
+        companion_sysid=args.companion_sysid,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the SITL until SIGINT/SIGTERM (exit 0) or --max-steps."""
+    from sitl.server import SitlServer
+
+    options = options_from_args(args)
+    server = SitlServer(options)
+    return server.run()
+
+
+def _triple(text: str, flag: str) -> tuple[float, float, float]:
+    parts = text.replace(" ", "").split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise UserError(f"{flag} must be three numbers N,E,D in m, got {text!r}", hint=f"e.g. {flag} 0,0,-50")
+    return values  # type: ignore[return-value]
+
+
+def _rotor_speed(text: str, vehicle: VehicleConfig) -> float:
+    if text.strip().lower() == "hover":
+        return vehicle.hover_speed
+    try:
+        w = float(text)
+    except ValueError:
+        w = math.nan
+    if not (math.isfinite(w) and 0.0 <= w <= vehicle.motor_curve.max_speed):
+        raise UserError(
+            f"--initial-rotor-speed must be 'hover' or a speed in rad/s within [0, "
+            f"{vehicle.motor_curve.max_speed:.1f}], got {text!r}"
+        )
+    return w

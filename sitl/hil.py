@@ -1,0 +1,252 @@
+"""The HIL side of the SITL: one step's datagram from the physics and sensors, and actuator input checks.
+
+Per step, in this order: HIL_STATE_QUATERNION (true state), LOCAL_POSITION_NED (precise true position and
+velocity), RAW_RPM x4 (true rotor speeds after the motor lag, rpm, index 0..3 = motors 1..4 in PX4 order;
+pymavlink's common dialect has no ESC_STATUS), HIL_GPS on GPS steps (10 Hz), HIL_SENSOR last. All carry the
+step's time_usec (LOCAL_POSITION_NED: time_boot_ms = time_usec // 1000).
+
+The frames are packed here straight from floats with precompiled structs: building pymavlink message objects
+and packing them through bridge.messages costs about 4x more, and this runs 5000+ times per wall second.
+`reference_messages` builds the same step through bridge.messages; a test checks both give equal fields.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from fastcrc import crc16
+from pymavlink.dialects.v20 import common as mavlink
+
+from bridge import messages
+from bridge.framing import payload_bytes
+from bridge.link import UdpLink
+from bridge.signing import Signing
+from bridge.vehicle import HomeConfig
+from sitl.dynamics import Quadrotor
+from sitl.geodesy import LocalFrame
+from sitl.sensors import SensorFrame
+
+HIL_COMPONENT_ID = 51  # the simulator's component id on the HIL link
+SYSTEM_ID = 1
+
+_mcrf4xx = crc16.mcrf4xx
+_HSQ = mavlink.MAVLink_hil_state_quaternion_message
+_LPN = mavlink.MAVLink_local_position_ned_message
+_RPM = mavlink.MAVLink_raw_rpm_message
+_GPS = mavlink.MAVLink_hil_gps_message
+_SENSOR = mavlink.MAVLink_hil_sensor_message
+for _cls, _order in (
+    (_HSQ, "time_usec attitude_quaternion rollspeed pitchspeed yawspeed lat lon alt vx vy vz ind_airspeed "
+           "true_airspeed xacc yacc zacc"),
+    (_LPN, "time_boot_ms x y z vx vy vz"),
+    (_RPM, "frequency index"),
+    (_GPS, "time_usec lat lon alt eph epv vel vn ve vd cog fix_type satellites_visible id yaw"),
+    (_SENSOR, "time_usec xacc yacc zacc xgyro ygyro zgyro xmag ymag zmag abs_pressure diff_pressure "
+              "pressure_alt temperature fields_updated id"),
+):
+    # The payload tuples below are written in these wire orders; fail loudly if pymavlink ever differs.
+    if list(_cls.ordered_fieldnames) != _order.split():
+        raise ImportError(f"unexpected wire order of {_cls.msgname}: {_cls.ordered_fieldnames}")
+
+RAD_S_TO_RPM = messages.RAD_S_TO_RPM
+ACCEL_LIMIT = messages.ACCEL_LIMIT
+GYRO_LIMIT = messages.GYRO_LIMIT
+MG_PER_M_S2 = 1000.0 / messages.G0
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+
+
+def int16_of(v: float) -> int:
+    """v rounded into int16 (saturated, also for +-inf; NaN -> 0)."""
+    if v >= 32767.0:
+        return 32767
+    if v <= -32768.0:
+        return -32768
+    return 0 if v != v else round(v)
+
+
+def uint16_of(v: float, hi: int = 65535) -> int:
+    """v rounded into [0, hi] (saturated, also for +-inf; NaN -> 0)."""
+    if v >= hi:
+        return hi
+    if v <= 0.0:
+        return 0
+    return 0 if v != v else round(v)
+
+
+def int32_of(v: float, lo: int, hi: int) -> int:
+    """v rounded into [lo, hi] (saturated, also for +-inf; NaN -> 0)."""
+    if v >= hi:
+        return hi
+    if v <= lo:
+        return lo
+    return 0 if v != v else round(v)
+
+
+def lat_e7(deg: float) -> int:
+    """Latitude in deg to the degE7 int of MAVLink."""
+    return int32_of(deg * 1e7, -900000000, 900000000)
+
+
+def lon_e7(deg: float) -> int:
+    """Longitude in deg to the degE7 int of MAVLink."""
+    return int32_of(deg * 1e7, -1800000000, 1800000000)
+
+
+def kind(cls: type) -> tuple[bytes, bytes, Callable[..., bytes]]:
+    """(3-byte message id, CRC extra byte, payload packer in wire order) of a pymavlink message class."""
+    return cls.id.to_bytes(3, "little"), bytes([cls.crc_extra]), cls.unpacker.pack
+
+
+def part_of(msg: object) -> tuple[bytes, bytes, bytes]:
+    """(3-byte message id, CRC extra byte, payload) of a pymavlink message, for Framer.frames."""
+    cls = type(msg)
+    return cls.id.to_bytes(3, "little"), bytes([cls.crc_extra]), payload_bytes(msg)
+
+
+class Framer:
+    """MAVLink 2 frames straight from payloads, for one system and component.
+
+    The sequence number lives in `counter.seq` (a UdpLink, so that frames it packs itself share it).
+    """
+
+    def __init__(self, system_id: int, component_id: int, counter: object, signing: Signing | None = None):
+        self.counter = counter
+        self.signing = signing
+        # Header bytes 2..3 (incompat flags, compat flags) and 5..6 (system, component ids) never change.
+        self._flags = bytes((0x01 if signing is not None else 0, 0))
+        self._ids = bytes((system_id, component_id))
+
+    def frames(self, parts: list[tuple[bytes, bytes, bytes]]) -> list[bytes]:
+        """Frames of (3-byte message id, CRC extra, payload) parts, numbered in sequence."""
+        seq = self.counter.seq
+        flags, ids, signing = self._flags, self._ids, self.signing
+        out = []
+        for msg_id, extra, payload in parts:
+            payload = payload.rstrip(b"\x00") or b"\x00"
+            tail = b"".join((bytes((len(payload),)), flags, bytes((seq,)), ids, msg_id, payload))
+            crc = _mcrf4xx(extra, _mcrf4xx(tail))
+            frame = b"".join((b"\xfd", tail, bytes((crc & 0xFF, crc >> 8))))
+            out.append(frame if signing is None else signing.sign(frame))
+            seq = (seq + 1) & 0xFF
+        self.counter.seq = seq
+        return out
+
+
+class HilEncoder:
+    """Builds the frames the SITL sends for one step on a HIL link (its ids, sequence numbers, signing)."""
+
+    def __init__(self, home: HomeConfig, link: UdpLink):
+        self.frame = LocalFrame.at(home)
+        self.link = link
+        self._frames = Framer(link.system_id, link.component_id, link, link.signing).frames
+        kinds = map(kind, (_HSQ, _LPN, _RPM, _GPS, _SENSOR))
+        self._hsq, self._lpn, self._rpm, self._gps, self._sensor = kinds
+
+    def step_frames(self, quad: Quadrotor, s: SensorFrame) -> list[bytes]:
+        """The frames of the current step, HIL_SENSOR last; all stamped with the step's time_usec."""
+        t = quad.time_usec
+        x, y, z = quad.position
+        vx, vy, vz = quad.velocity
+        qw, qx, qy, qz = quad.quaternion
+        p, q, r = quad.rates
+        lat, lon, alt = self.frame.to_geodetic(x, y, z)
+        fx, fy, fz = quad.specific_force_body()
+        speed = 100.0 * math.sqrt(vx * vx + vy * vy + vz * vz)
+        msg_id, extra, pack = self._hsq
+        parts = [
+            (msg_id, extra, pack(
+                t, qw, qx, qy, qz, p, q, r,
+                lat_e7(lat), lon_e7(lon), int32_of(alt * 1000.0, INT32_MIN, INT32_MAX),
+                int16_of(vx * 100.0), int16_of(vy * 100.0), int16_of(vz * 100.0), uint16_of(speed),
+                uint16_of(speed),
+                int16_of(fx * MG_PER_M_S2), int16_of(fy * MG_PER_M_S2), int16_of(fz * MG_PER_M_S2),
+            )),
+        ]
+        msg_id, extra, pack = self._lpn
+        parts.append((msg_id, extra, pack((t // 1000) & 0xFFFFFFFF, x, y, z, vx, vy, vz)))
+        msg_id, extra, pack = self._rpm
+        w1, w2, w3, w4 = quad.rotor_speeds
+        parts.append((msg_id, extra, pack(w1 * RAD_S_TO_RPM, 0)))
+        parts.append((msg_id, extra, pack(w2 * RAD_S_TO_RPM, 1)))
+        parts.append((msg_id, extra, pack(w3 * RAD_S_TO_RPM, 2)))
+        parts.append((msg_id, extra, pack(w4 * RAD_S_TO_RPM, 3)))
+        if s.new_gps:
+            g = s.gps
+            vn, ve, vd = g.vel
+            ground = math.hypot(vn, ve)
+            cog = 65535 if ground < 0.01 else int(round(math.degrees(math.atan2(ve, vn)) * 100.0)) % 36000
+            msg_id, extra, pack = self._gps
+            parts.append((msg_id, extra, pack(
+                t, lat_e7(g.lat), lon_e7(g.lon), int32_of(g.alt * 1000.0, INT32_MIN, INT32_MAX),
+                uint16_of(g.eph * 100.0, 65534), uint16_of(g.epv * 100.0, 65534),
+                uint16_of(ground * 100.0, 65534), int16_of(vn * 100.0), int16_of(ve * 100.0),
+                int16_of(vd * 100.0), cog,
+                g.fix_type, min(max(g.satellites, 0), 255), 0, 0,
+            )))
+        ax, ay, az = s.accel
+        gx, gy, gz = s.gyro
+        mx, my, mz = s.mag
+        a, w = ACCEL_LIMIT, GYRO_LIMIT
+        msg_id, extra, pack = self._sensor
+        parts.append((msg_id, extra, pack(
+            t,
+            a if ax > a else (-a if ax < -a else ax),
+            a if ay > a else (-a if ay < -a else ay),
+            a if az > a else (-a if az < -a else az),
+            w if gx > w else (-w if gx < -w else gx),
+            w if gy > w else (-w if gy < -w else gy),
+            w if gz > w else (-w if gz < -w else gz),
+            mx, my, mz, s.abs_pressure, 0.0, s.pressure_alt, s.temperature, s.fields_updated, 0,
+        )))
+        return self._frames(parts)
+
+    def frames_of(self, msgs: list) -> list[bytes]:
+        """Frames of pymavlink messages (e.g. STATUSTEXT), in this link's sequence."""
+        return self.link.pack(msgs)
+
+
+def reference_messages(quad: Quadrotor, s: SensorFrame, home: HomeConfig) -> list:
+    """The step's messages built through bridge.messages (the slow, obviously-right path; for tests)."""
+    t = quad.time_usec
+    lat, lon, alt = LocalFrame.at(home).to_geodetic(*quad.position)
+    state = messages.TrueState(t, quad.position, quad.velocity, quad.quaternion, quad.euler, quad.rates)
+    out = [
+        messages.encode_hil_state_quaternion(state, lat, lon, alt, quad.specific_force_body()),
+        messages.encode_local_position_ned(state),
+    ]
+    out.extend(messages.encode_raw_rpm(quad.rotor_speeds))
+    if s.new_gps:
+        g = s.gps
+        out.append(messages.encode_hil_gps(
+            messages.GpsSample(t, g.lat, g.lon, g.alt, g.vel, g.fix_type, g.satellites, g.eph, g.epv)))
+    out.append(messages.encode_hil_sensor(messages.ImuSample(
+        t, s.accel, s.gyro, s.mag, s.abs_pressure, s.pressure_alt, s.temperature, s.fields_updated)))
+    return out
+
+
+def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int, int]:
+    """Motor throttles from controls[0..3]: (throttles in [0, 1], count non-finite -> 0, count clamped)."""
+    nonfinite = 0
+    clamped = 0
+    out = []
+    for value in controls[:4]:
+        v = float(value)
+        if not math.isfinite(v):
+            nonfinite += 1
+            v = 0.0
+        elif v < 0.0:
+            clamped += 1
+            v = 0.0
+        elif v > 1.0:
+            clamped += 1
+            v = 1.0
+        out.append(v)
+    while len(out) < 4:
+        out.append(0.0)
+    return (out[0], out[1], out[2], out[3]), nonfinite, clamped
+
+
+def statustext(severity: int, text: str):
+    """A STATUSTEXT message (text cut to the 50 characters MAVLink carries)."""
+    return mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50])

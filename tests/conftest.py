@@ -1,0 +1,211 @@
+"""Shared fixtures: free UDP ports, `quadsr sitl` as a subprocess, a raw HIL companion (real UDP)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+LISTENING = re.compile(r"listening for the companion on (udp:[\d.]+:(\d+))")
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def udp_port() -> int:
+    """A free UDP port on 127.0.0.1."""
+    return free_udp_port()
+
+
+class SitlProcess:
+    """A running `quadsr sitl` subprocess: its HIL address, its output lines, and how to stop it."""
+
+    def __init__(self, args: list[str], timeout: float = 20.0):
+        self.args = args
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "quadsr.cli", "sitl", *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            cwd=REPO,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        match = self.wait_for(LISTENING, timeout)
+        self.hil = match.group(1)
+        self.hil_port = int(match.group(2))
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                self._cond.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+
+    @property
+    def output(self) -> str:
+        """Everything printed so far."""
+        with self._cond:
+            return "\n".join(self.lines)
+
+    def wait_for(self, pattern: str | re.Pattern, timeout: float = 10.0, start: int = 0) -> re.Match:
+        """The first output line (from index start) matching pattern; fails the test after timeout s."""
+        rx = re.compile(pattern) if isinstance(pattern, str) else pattern
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for line in self.lines[start:]:
+                    m = rx.search(line)
+                    if m:
+                        return m
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (self.proc.poll() is not None and not self._reader.is_alive()):
+                    raise AssertionError(
+                        f"SITL printed no line matching {rx.pattern!r} within {timeout} s "
+                        f"(exit code {self.proc.poll()}); output:\n" + "\n".join(self.lines)
+                    )
+                self._cond.wait(min(remaining, 0.1))
+
+    def status_lines(self) -> list[str]:
+        """The status lines printed so far."""
+        with self._cond:
+            return [line for line in self.lines if " steps=" in line]
+
+    def signal(self, signum: int) -> None:
+        """Send a signal to the SITL."""
+        self.proc.send_signal(signum)
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """SIGTERM, wait, and return the exit code (SIGKILL after timeout s)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._reader.join(5.0)
+        return self.proc.returncode
+
+
+@pytest.fixture
+def start_sitl() -> Iterator[Callable[..., SitlProcess]]:
+    """Factory: start_sitl(*flags) runs `quadsr sitl --hil udp:127.0.0.1:0 ...` and waits until it listens.
+
+    Unless the flags name a ground link, the GCS link goes to a free port nobody listens on. Every SITL
+    started is stopped at teardown.
+    """
+    started: list[SitlProcess] = []
+
+    def start(*flags: str, timeout: float = 20.0) -> SitlProcess:
+        args = list(flags)
+        if "--hil" not in args:
+            args += ["--hil", "udp:127.0.0.1:0"]
+        if "--gcs" not in args and "--no-gcs" not in args:
+            args += ["--gcs", f"udp:127.0.0.1:{free_udp_port()}"]
+        sitl = SitlProcess(args, timeout)
+        started.append(sitl)
+        return sitl
+
+    yield start
+    for sitl in started:
+        sitl.stop()
+
+
+class RawCompanion:
+    """A companion speaking raw MAVLink over bridge.link.UdpLink: whole datagrams, raw frames, no cleaning."""
+
+    def __init__(self, hil: str, signing=None):
+        from bridge.link import UdpLink
+
+        self.link = UdpLink(remote=hil, system_id=1, component_id=1, signing=signing)
+        self.frames: list[tuple[object, bytes]] = []  # the last step received
+
+    def hello(self) -> None:
+        """Send a HEARTBEAT (connects to the SITL)."""
+        from bridge.messages import encode_heartbeat
+
+        self.link.send([encode_heartbeat()])
+
+    def datagram(self, timeout: float = 2.0) -> list[tuple[object, bytes]]:
+        """The (message, raw frame) pairs of the next datagram with valid frames; fails after timeout s."""
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise AssertionError(f"no datagram from the SITL within {timeout} s")
+            frames = self.link.recv_frames(remaining)
+            if frames:
+                return frames
+
+    def step_datagram(self, timeout: float = 2.0, after: int = -1) -> list[tuple[object, bytes]]:
+        """The next datagram that ends with a HIL_SENSOR of time_usec > after (a step; skips re-sent ones)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            frames = self.datagram(max(deadline - time.monotonic(), 0.0))
+            if frames[-1][0].get_type() == "HIL_SENSOR" and frames[-1][0].time_usec > after:
+                self.frames = frames
+                return frames
+
+    def step(self, throttles, timeout: float = 2.0) -> list[tuple[object, bytes]]:
+        """Answer the current step with these throttles (sent as given) and return the next step's frames."""
+        t = self.frames[-1][0].time_usec
+        self.reply(t, throttles)
+        return self.step_datagram(timeout, after=t)
+
+    def reply(self, time_usec: int, throttles, lockstep: bool = True) -> None:
+        """Send HIL_ACTUATOR_CONTROLS with controls[0..3] = throttles exactly as given (NaN, 2.0, ...)."""
+        from bridge.messages import encode_hil_actuator_controls
+
+        self.link.send([encode_hil_actuator_controls(time_usec, list(throttles), lockstep)])
+
+    def connect(self, timeout: float = 5.0) -> list[tuple[object, bytes]]:
+        """HEARTBEAT until the time-0 datagram arrives; return it."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.hello()
+            try:
+                frames = self.step_datagram(0.2)
+            except AssertionError:
+                continue
+            return frames
+        raise AssertionError(f"the SITL did not answer within {timeout} s")
+
+    def close(self) -> None:
+        """Close the socket."""
+        self.link.close()
+
+
+@pytest.fixture
+def raw_companion() -> Iterator[Callable[..., RawCompanion]]:
+    """Factory: raw_companion(hil, signing=None) -> RawCompanion; closed at teardown."""
+    made: list[RawCompanion] = []
+
+    def make(hil: str, signing=None) -> RawCompanion:
+        c = RawCompanion(hil, signing)
+        made.append(c)
+        return c
+
+    yield make
+    for c in made:
+        c.close()
