@@ -1,1 +1,1 @@
-"""Model-based trajectory tracking (PI outer loop, backstepping inner loop) and baselines, as an offboard companion."""
+"""Model-based trajectory tracking (PI outer loop, backstepping inner loop) and baselines, as a companion."""

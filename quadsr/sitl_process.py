@@ -1,0 +1,89 @@
+"""Start `quadsr sitl` as a child process on free loopback ports, and stop it cleanly."""
+
+from __future__ import annotations
+
+import os
+import queue
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from bridge.errors import UserError
+
+
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """Return a UDP port on `host` that was free a moment ago (bound once, then released)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind((host, 0))
+        return sock.getsockname()[1]
+
+
+class SitlProcess:
+    """A `quadsr sitl` child process on free ports, its output echoed to a log file, stopped on exit."""
+
+    READY_MARK = "listening for the companion"
+
+    def __init__(self, extra_args: list[str] | None = None, log_path: Path | None = None,
+                 hil_port: int | None = None, gcs: str | None = None):
+        self.hil_port = hil_port or free_udp_port()
+        self.hil = f"udp:127.0.0.1:{self.hil_port}"
+        self.args = [sys.executable, "-m", "quadsr.cli", "sitl", "--hil", self.hil]
+        self.args += ["--gcs", gcs] if gcs else ["--no-gcs"]
+        self.args += list(extra_args or [])
+        self.log_path = log_path
+        self.proc: subprocess.Popen | None = None
+        self._lines: queue.Queue[str] = queue.Queue()
+        self.output: list[str] = []
+
+    def start(self, timeout: float = 20.0) -> SitlProcess:
+        """Start the SITL and wait until it says it is listening; raise UserError if it does not."""
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, env=env)
+        threading.Thread(target=self._pump, daemon=True).start()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                line = self._lines.get(timeout=0.1)
+            except queue.Empty:
+                if self.proc.poll() is not None:
+                    break
+                continue
+            if self.READY_MARK in line:
+                return self
+        self.stop()
+        raise UserError(f"the SITL did not start within {timeout:.0f} s: {' '.join(self.args)}\n"
+                        + "".join(self.output[-20:]))
+
+    def _pump(self) -> None:
+        assert self.proc is not None and self.proc.stdout is not None
+        log = open(self.log_path, "a", buffering=1) if self.log_path else None
+        try:
+            for line in self.proc.stdout:
+                self.output.append(line)
+                self._lines.put(line)
+                if log:
+                    log.write(line)
+        finally:
+            if log:
+                log.close()
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        """Stop the SITL (SIGINT, then kill after `timeout` s); return its exit code."""
+        if self.proc is None or self.proc.poll() is not None:
+            return None if self.proc is None else self.proc.returncode
+        self.proc.terminate()
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.wait()
+
+    def __enter__(self) -> SitlProcess:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
