@@ -1,0 +1,488 @@
+"""Excitation profiles: their settings (identification/profiles/<name>.yaml, validated) and their signals.
+
+A profile makes a signal generator for one flight: `generator.command(obs) -> rotor speeds (4,) rad/s`
+(PX4 order), called once per SITL step with that step's Observation; the flight client turns the speeds
+into throttles through the vehicle's motor curve.
+
+Kinds:
+- random-steps (paper-train): each motor holds random speeds drawn uniformly in the current group's range,
+  each for a random time; groups follow one another. Open loop from altitude, no ground. For symbolic
+  regression to separate all six targets the data must spread over the attitudes (every roll, pitch and
+  yaw, so sin/cos terms are not collinear: the tumbling does that), the body rates (the gyroscopic
+  products wy*wz, wx*wz, wx*wy), the velocities (drag: the fall reaches about 20 m/s) and the four rotor
+  speeds independently (f1..f4 not collinear). A rate guard keeps body rates under the gyro's +-2000 deg/s
+  clamp: while a rate exceeds it, new draws come from the half of the range that brakes that axis (still
+  random, no feedback gain); set rate_guard: null for the paper's pure open loop.
+- sinusoids (paper-validate): u_i = offset_i + amplitude_i sin(frequency t + phase_i).
+- closed-loop: the hover stabiliser (identification.hover_stabilizer) takes off, climbs, settles, then
+  follows a slow Lissajous path with a turning heading while PRBS or chirp excitation is added to every
+  motor; the excitation fades near the box walls and the tilt limit, so the vehicle stays where a real
+  one would survive.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from bridge.errors import UserError
+from bridge.vehicle import VehicleConfig
+from identification.hover_stabilizer import HoverStabilizer, Reference, StabilizerGains
+
+PROFILE_KINDS = ("random-steps", "sinusoids", "closed-loop")
+STEP_S = 0.004
+# Sign of each motor's contribution to roll, pitch, yaw torque (PX4 Quad-X; docs/design.md f2, f3, f4).
+TORQUE_SIGNS = np.array([[-1, 1, 1], [1, -1, 1], [1, 1, -1], [-1, -1, -1]], dtype=float)
+
+
+def profiles_dir() -> Path:
+    """The folder of the bundled profiles."""
+    return Path(__file__).resolve().parent / "profiles"
+
+
+def list_profiles() -> list[str]:
+    """Names of the bundled profiles."""
+    return sorted(p.stem for p in profiles_dir().glob("*.yaml"))
+
+
+# --------------------------------------------------------------------------------------------------------
+# Settings
+
+
+@dataclass(frozen=True)
+class RandomStepsProfile:
+    """Random held motor speeds in successive ranges (rad/s), open loop from altitude."""
+
+    name: str
+    description: str
+    groups: tuple[tuple[float, float], ...]  # rad/s (low, high) per group
+    group_duration: float  # s
+    hold: tuple[float, float]  # s, min and max hold time of one random speed
+    rate_guard: float | None  # rad/s
+    start: str = "altitude"
+    kind: str = "random-steps"
+
+    @property
+    def duration(self) -> float:
+        """Default flight duration, s."""
+        return self.group_duration * len(self.groups)
+
+
+@dataclass(frozen=True)
+class SinusoidsProfile:
+    """u_i = offset_i + amplitude_i sin(frequency t + phase_i) (rad/s, rad/s, rad/s, rad), open loop."""
+
+    name: str
+    description: str
+    duration: float
+    offset: tuple[float, float, float, float]
+    amplitude: tuple[float, float, float, float]
+    frequency: float
+    phase: tuple[float, float, float, float]
+    start: str = "altitude"
+    kind: str = "sinusoids"
+
+
+@dataclass(frozen=True)
+class ClosedLoopProfile:
+    """Stabilised flight with excitation on every motor inside a box and under a tilt limit."""
+
+    name: str
+    description: str
+    duration: float  # s, whole flight
+    takeoff_altitude: float  # m above the start point
+    climb_rate: float  # m/s
+    settle: float  # s
+    box_half_width: float  # m, north and east of the start point
+    box_altitude: tuple[float, float]  # m above the start point
+    tilt_limit: float  # deg
+    signal: str  # prbs | chirp
+    amplitude: float  # rad/s
+    prbs_hold: tuple[float, float]  # s
+    chirp: tuple[float, float]  # Hz
+    backoff_distance: float  # m
+    backoff_tilt: float  # deg
+    reference_amplitude: tuple[float, float, float]  # m N E D
+    reference_period: tuple[float, float, float]  # s
+    yaw_rate: float  # rad/s
+    gains: StabilizerGains = field(default_factory=StabilizerGains)
+    start: str = "ground"
+    kind: str = "closed-loop"
+
+    @property
+    def excitation_start(self) -> float:
+        """Time (s) when the climb and settling are over and the excitation begins."""
+        return self.takeoff_altitude / self.climb_rate + self.settle
+
+
+Profile = RandomStepsProfile | SinusoidsProfile | ClosedLoopProfile
+
+
+class _Reader:
+    """Reads one mapping of a profile file, naming file and dotted key in every error."""
+
+    def __init__(self, where: str, data: Any, prefix: str = ""):
+        if not isinstance(data, dict):
+            raise UserError(
+                f"{where}: {'key ' + repr(prefix) if prefix else 'the top level'} must be a mapping"
+            )
+        self.where, self.data, self.prefix, self.used = where, data, prefix, set()
+
+    def _key(self, name: str) -> str:
+        return f"{self.prefix}.{name}" if self.prefix else name
+
+    def fail(self, name: str, what: str) -> UserError:
+        return UserError(
+            f"{self.where}: key '{self._key(name)}' {what}",
+            hint=f"see the bundled profiles in {profiles_dir()} for every key with its unit",
+        )
+
+    def raw(self, name: str, default: Any = ...) -> Any:
+        self.used.add(name)
+        if name not in self.data:
+            if default is ...:
+                raise self.fail(name, "is missing")
+            return default
+        return self.data[name]
+
+    def sub(self, name: str) -> _Reader:
+        return _Reader(self.where, self.raw(name, {}), self._key(name))
+
+    def number(
+        self,
+        name: str,
+        default: Any = ...,
+        low: float | None = None,
+        high: float | None = None,
+        strict_low: bool = False,
+    ) -> float:
+        v = _number(self.raw(name, default))
+        if v is None:
+            raise self.fail(name, f"must be a number, got {self.data.get(name)!r}")
+        if low is not None and (v < low or (strict_low and v == low)):
+            raise self.fail(name, f"must be {'>' if strict_low else '>='} {low:g}, got {v:g}")
+        if high is not None and v > high:
+            raise self.fail(name, f"must be <= {high:g}, got {v:g}")
+        return v
+
+    def numbers(self, name: str, n: int, default: Any = ..., low: float | None = None) -> tuple[float, ...]:
+        raw = self.raw(name, default)
+        if not isinstance(raw, (list, tuple)) or len(raw) != n:
+            raise self.fail(name, f"must be a list of {n} numbers, got {raw!r}")
+        out = tuple(_number(v) for v in raw)
+        if any(v is None for v in out):
+            raise self.fail(name, f"must be a list of {n} numbers, got {raw!r}")
+        if low is not None and any(v < low for v in out):
+            raise self.fail(name, f"values must be >= {low:g}, got {raw!r}")
+        return out  # type: ignore[return-value]
+
+    def range(self, name: str, default: Any = ..., low: float = 0.0) -> tuple[float, float]:
+        a, b = self.numbers(name, 2, default, low=low)
+        if b < a:
+            raise self.fail(name, f"must be [low, high] with low <= high, got {[a, b]}")
+        return a, b
+
+    def text(self, name: str, choices: tuple[str, ...], default: Any = ...) -> str:
+        v = self.raw(name, default)
+        if v not in choices:
+            raise self.fail(name, f"must be one of {', '.join(choices)}, got {v!r}")
+        return v
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise self.fail(unknown[0], f"is unknown (allowed here: {', '.join(sorted(self.used))})")
+
+
+_PI_RE = re.compile(r"^\s*(-?\d*\.?\d*)\s*\*?\s*pi\s*(?:/\s*(\d+\.?\d*))?\s*$")
+
+
+def _number(v: Any) -> float | None:
+    """A finite float from a YAML value; strings like '1e-4', 'pi/4', '-2*pi/3' too."""
+    if isinstance(v, bool):
+        return None
+    if isinstance(v, (int, float)):
+        f = float(v)
+        return f if math.isfinite(f) else None
+    if isinstance(v, str):
+        m = _PI_RE.match(v)
+        if m:
+            k = m.group(1)
+            factor = -1.0 if k == "-" else (1.0 if k in ("", "+") else float(k))
+            return factor * math.pi / (float(m.group(2)) if m.group(2) else 1.0)
+        try:
+            f = float(v)
+        except ValueError:
+            return None
+        return f if math.isfinite(f) else None
+    return None
+
+
+def resolve_profile_path(name_or_path: str | Path) -> Path:
+    """A profile file: an existing path, else a bundled name (identification/profiles/<name>.yaml)."""
+    text = str(name_or_path)
+    p = Path(text)
+    if p.is_file():
+        return p
+    bundled = profiles_dir() / f"{text}.yaml"
+    if "/" not in text and bundled.is_file():
+        return bundled
+    raise UserError(
+        f"excitation profile {text!r}: not found",
+        hint=f"use a bundled profile ({', '.join(list_profiles())}) or a path to a profile YAML file",
+    )
+
+
+def load_profile(name_or_path: str | Path) -> Profile:
+    """Load and validate a profile (bundled name or YAML path); each mistake is a UserError naming the key."""
+    path = resolve_profile_path(name_or_path)
+    where = f"excitation profile {path}"
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"{where}: cannot read it ({exc})") from None
+    except yaml.YAMLError as exc:
+        raise UserError(f"{where}: YAML syntax error: {exc}") from None
+    r = _Reader(where, data)
+    kind = r.text("kind", PROFILE_KINDS)
+    name = str(r.raw("name", path.stem))
+    description = str(r.raw("description", ""))
+    if kind == "random-steps":
+        groups_raw = r.raw("groups")
+        if not isinstance(groups_raw, list) or not groups_raw:
+            raise r.fail("groups", "must be a non-empty list of [low, high] speed ranges in rad/s")
+        groups = []
+        for i, g in enumerate(groups_raw):
+            gr = _Reader(where, {"g": g}, f"groups[{i}]")
+            groups.append(gr.range("g"))
+        guard = r.raw("rate_guard", None)
+        profile: Profile = RandomStepsProfile(
+            name=name,
+            description=description,
+            groups=tuple(groups),
+            group_duration=r.number("group_duration", low=0.0, strict_low=True),
+            hold=r.range("hold"),
+            rate_guard=None if guard is None else r.number("rate_guard", low=0.0, strict_low=True),
+        )
+        if profile.hold[0] <= 0:
+            raise r.fail("hold", "must be > 0 s")
+    elif kind == "sinusoids":
+        profile = SinusoidsProfile(
+            name=name,
+            description=description,
+            duration=r.number("duration", low=0.0, strict_low=True),
+            offset=r.numbers("offset", 4),
+            amplitude=r.numbers("amplitude", 4),  # type: ignore[arg-type]
+            frequency=r.number("frequency"),
+            phase=r.numbers("phase", 4),  # type: ignore[arg-type]
+        )
+    else:
+        to, box, ex, ref = r.sub("takeoff"), r.sub("box"), r.sub("excitation"), r.sub("reference")
+        backoff, st = ex.sub("backoff"), r.sub("stabilizer")
+        d = StabilizerGains()
+        gains = StabilizerGains(
+            position_gain=st.numbers("position_gain", 3, d.position_gain, low=0.0),  # type: ignore[arg-type]
+            velocity_gain=st.numbers("velocity_gain", 3, d.velocity_gain, low=0.0),  # type: ignore[arg-type]
+            attitude_gain=st.numbers("attitude_gain", 3, d.attitude_gain, low=0.0),  # type: ignore[arg-type]
+            rate_gain=st.numbers("rate_gain", 3, d.rate_gain, low=0.0),  # type: ignore[arg-type]
+            max_tilt=st.number("max_tilt", d.max_tilt, low=0.0, high=60.0, strict_low=True),
+            max_speed=st.numbers("max_speed", 3, d.max_speed, low=0.0),  # type: ignore[arg-type]
+        )
+        profile = ClosedLoopProfile(
+            name=name,
+            description=description,
+            duration=r.number("duration", low=0.0, strict_low=True),
+            takeoff_altitude=to.number("altitude", low=0.0, strict_low=True),
+            climb_rate=to.number("climb_rate", low=0.0, strict_low=True),
+            settle=to.number("settle", 1.0, low=0.0),
+            box_half_width=box.number("half_width", low=0.0, strict_low=True),
+            box_altitude=box.range("altitude"),
+            tilt_limit=r.number("tilt_limit", low=0.0, high=80.0, strict_low=True),
+            signal=ex.text("signal", ("prbs", "chirp")),
+            amplitude=ex.number("amplitude", low=0.0),
+            prbs_hold=ex.range("hold", (0.02, 0.15)),
+            chirp=ex.range("chirp", (0.5, 8.0)),
+            backoff_distance=backoff.number("distance", 1.0, low=0.0, strict_low=True),
+            backoff_tilt=backoff.number("tilt", 10.0, low=0.0, strict_low=True),
+            reference_amplitude=ref.numbers("amplitude", 3, (1.0, 1.0, 0.8), low=0.0),  # type: ignore[arg-type]
+            reference_period=ref.numbers("period", 3, (8.0, 5.3, 6.1), low=0.1),  # type: ignore[arg-type]
+            yaw_rate=ref.number("yaw_rate", 1.0),
+            gains=gains,
+        )
+        for sub_reader in (to, box, ex, backoff, ref, st):
+            sub_reader.done()
+        _check_closed_loop(r, profile)
+    r.done()
+    return profile
+
+
+def _check_closed_loop(r: _Reader, p: ClosedLoopProfile) -> None:
+    lo, hi = p.box_altitude
+    if not lo < p.takeoff_altitude < hi:
+        raise r.fail("takeoff.altitude", f"must lie inside box.altitude {list(p.box_altitude)}")
+    if p.gains.max_tilt >= p.tilt_limit:
+        raise r.fail("stabilizer.max_tilt", f"must be below tilt_limit ({p.tilt_limit:g} deg)")
+    a = p.reference_amplitude
+    if a[0] >= p.box_half_width or a[1] >= p.box_half_width:
+        raise r.fail("reference.amplitude", f"must stay inside box.half_width ({p.box_half_width:g} m)")
+    if p.takeoff_altitude - a[2] <= lo or p.takeoff_altitude + a[2] >= hi:
+        raise r.fail("reference.amplitude", "the vertical swing must stay inside box.altitude")
+
+
+# --------------------------------------------------------------------------------------------------------
+# Signal generators
+
+
+class RandomSteps:
+    """paper-train: random held speeds per motor (rad/s) in successive groups' ranges."""
+
+    def __init__(self, profile: RandomStepsProfile, seed: int, duration: float):
+        self.p = profile
+        self.rng = np.random.default_rng(seed)
+        self.group_duration = duration / len(profile.groups)
+        self.speeds = np.zeros(4)
+        self.next_switch = np.zeros(4)
+        self.group = -1
+        self.guard_draws = 0
+
+    def command(self, t: float, xi: np.ndarray) -> np.ndarray:
+        """Rotor speeds (4,) rad/s at time t (s) since the flight start, given the true state xi."""
+        group = min(int(t / self.group_duration), len(self.p.groups) - 1)
+        if group != self.group:
+            self.group = group
+            self.next_switch[:] = t  # a new group redraws every motor at once
+        lo, hi = self.p.groups[group]
+        due = np.flatnonzero(self.next_switch <= t + 1e-9)
+        if due.size:
+            brake = self._brake_preference(xi)
+            for i in due:
+                a, b = lo, hi
+                if brake[i] > 0:
+                    a = 0.5 * (lo + hi)
+                elif brake[i] < 0:
+                    b = 0.5 * (lo + hi)
+                self.speeds[i] = self.rng.uniform(a, b)
+                self.next_switch[i] = t + self.rng.uniform(*self.p.hold)
+        return self.speeds.copy()
+
+    def _brake_preference(self, xi: np.ndarray) -> np.ndarray:
+        """Per motor: +1 if speeding it up brakes the body rates over the guard, -1 if slowing it does, 0."""
+        if self.p.rate_guard is None:
+            return np.zeros(4)
+        w = np.asarray(xi[9:12], dtype=float)
+        over = np.abs(w) > self.p.rate_guard
+        if not over.any():
+            return np.zeros(4)
+        self.guard_draws += 1
+        score = -(TORQUE_SIGNS[:, over] * np.sign(w[over])).sum(axis=1)
+        return np.sign(score)
+
+
+class Sinusoids:
+    """paper-validate: u_i = offset_i + amplitude_i sin(frequency t + phase_i), rad/s."""
+
+    def __init__(self, profile: SinusoidsProfile):
+        self.offset = np.asarray(profile.offset)
+        self.amplitude = np.asarray(profile.amplitude)
+        self.frequency = profile.frequency
+        self.phase = np.asarray(profile.phase)
+
+    def command(self, t: float, xi: np.ndarray) -> np.ndarray:
+        """Rotor speeds (4,) rad/s at time t (s) since the flight start (the state is not used)."""
+        return np.maximum(self.offset + self.amplitude * np.sin(self.frequency * t + self.phase), 0.0)
+
+
+class ClosedLoopExcitation:
+    """closed-loop: take-off and hover stabilised, then excitation added to each motor, fading near limits."""
+
+    def __init__(
+        self,
+        profile: ClosedLoopProfile,
+        vehicle: VehicleConfig,
+        seed: int,
+        duration: float,
+        start_xi: np.ndarray,
+    ):
+        self.p = profile
+        self.rng = np.random.default_rng(seed)
+        self.duration = duration
+        self.stabilizer = HoverStabilizer(vehicle, profile.gains)
+        self.origin = np.asarray(start_xi[:3], dtype=float)
+        self.yaw0 = float(start_xi[8])
+        self.levels = self.rng.choice((-1.0, 1.0), size=4)
+        self.next_switch = np.zeros(4)
+        self.chirp_offsets = np.arange(4) * 0.25 * max(duration - profile.excitation_start, 1e-3)
+        self.scale = 0.0  # the excitation scale of the last step (0..1), for the summary
+        self.min_scale = 1.0
+
+    def reference(self, t: float) -> Reference:
+        """The reference at time t (s): climb to the hover point, then the Lissajous path with turning yaw."""
+        p = self.p
+        o = self.origin
+        climb_end = p.takeoff_altitude / p.climb_rate
+        if t < climb_end:
+            return Reference((o[0], o[1], o[2] - p.climb_rate * t), (0.0, 0.0, -p.climb_rate), self.yaw0)
+        te = t - p.excitation_start
+        if te < 0:
+            return Reference((o[0], o[1], o[2] - p.takeoff_altitude), yaw=self.yaw0)
+        pos, vel = [], []
+        for i, (a, per) in enumerate(zip(p.reference_amplitude, p.reference_period, strict=True)):
+            om = 2.0 * math.pi / per
+            centre = o[i] - (p.takeoff_altitude if i == 2 else 0.0)
+            pos.append(centre + a * math.sin(om * te))
+            vel.append(a * om * math.cos(om * te))
+        yaw = math.remainder(self.yaw0 + p.yaw_rate * te, 2.0 * math.pi)
+        return Reference(tuple(pos), tuple(vel), yaw)  # type: ignore[arg-type]
+
+    def limit_scale(self, xi: np.ndarray) -> float:
+        """Excitation scale 0..1: 1 well inside the box and tilt limit, falling to 0 at them."""
+        p = self.p
+        rel = np.asarray(xi[:3], dtype=float) - self.origin
+        margin_xy = p.box_half_width - max(abs(rel[0]), abs(rel[1]))
+        alt = -rel[2]
+        margin_alt = min(alt - p.box_altitude[0], p.box_altitude[1] - alt)
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, math.cos(xi[6]) * math.cos(xi[7])))))
+        margin_tilt = p.tilt_limit - tilt
+        s = min(margin_xy / p.backoff_distance, margin_alt / p.backoff_distance, margin_tilt / p.backoff_tilt)
+        return min(max(s, 0.0), 1.0)
+
+    def signal(self, t: float) -> np.ndarray:
+        """The raw excitation (4,) in [-1, 1] at time t (s) since the excitation began."""
+        if self.p.signal == "prbs":
+            due = self.next_switch <= t + 1e-9
+            for i in np.flatnonzero(due):
+                self.levels[i] = -self.levels[i] if self.rng.random() < 0.5 else self.levels[i]
+                self.next_switch[i] = t + self.rng.uniform(*self.p.prbs_hold)
+            return self.levels.copy()
+        f0, f1 = self.p.chirp
+        span = max(self.duration - self.p.excitation_start, 1e-3)
+        tau = (t + self.chirp_offsets) % span
+        return np.sin(2.0 * math.pi * (f0 * tau + 0.5 * (f1 - f0) / span * tau * tau))
+
+    def command(self, t: float, xi: np.ndarray) -> np.ndarray:
+        """Rotor speeds (4,) rad/s: the stabiliser's, plus the scaled excitation once it has begun."""
+        speeds = self.stabilizer.command(xi, self.reference(t))
+        te = t - self.p.excitation_start
+        if te < 0:
+            self.scale = 0.0
+            return speeds
+        self.scale = self.limit_scale(xi)
+        self.min_scale = min(self.min_scale, self.scale)
+        return np.maximum(speeds + self.scale * self.p.amplitude * self.signal(te), 0.0)
+
+
+def make_generator(
+    profile: Profile, vehicle: VehicleConfig, seed: int, duration: float, start_xi: np.ndarray
+) -> RandomSteps | Sinusoids | ClosedLoopExcitation:
+    """The signal generator of a profile for one flight of `duration` s starting in state start_xi."""
+    if isinstance(profile, RandomStepsProfile):
+        return RandomSteps(profile, seed, duration)
+    if isinstance(profile, SinusoidsProfile):
+        return Sinusoids(profile)
+    return ClosedLoopExcitation(profile, vehicle, seed, duration, start_xi)

@@ -1,0 +1,602 @@
+"""The model file (model.yaml): the learned or true equations of motion, their provenance and metrics.
+
+Expressions are strings in the 12 state and 4 input names only (docs/design.md). They are parsed with
+a small AST walker (no eval), so a model file cannot run code.
+"""
+
+from __future__ import annotations
+
+import ast
+import datetime as _dt
+import hashlib
+import math
+import os
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sympy
+import yaml
+from sympy.printing.str import StrPrinter
+
+from bridge.errors import UserError
+
+FORMAT = "quadsr-model/1"
+KINDS = ("learned", "true-model")
+
+STATE_NAMES: tuple[str, ...] = ("x", "y", "z", "vx", "vy", "vz", "phi", "theta", "psi", "wx", "wy", "wz")
+INPUT_NAMES: tuple[str, ...] = ("u1", "u2", "u3", "u4")
+TARGET_NAMES: tuple[str, ...] = ("ax", "ay", "az", "dwx", "dwy", "dwz")
+VARIABLE_NAMES: tuple[str, ...] = STATE_NAMES + INPUT_NAMES
+
+STATE_VARIABLES: tuple[dict[str, str], ...] = (
+    {"name": "x", "unit": "m", "frame": "NED", "description": "north position"},
+    {"name": "y", "unit": "m", "frame": "NED", "description": "east position"},
+    {"name": "z", "unit": "m", "frame": "NED", "description": "down position (z < 0 is above ground)"},
+    {"name": "vx", "unit": "m/s", "frame": "NED", "description": "north velocity"},
+    {"name": "vy", "unit": "m/s", "frame": "NED", "description": "east velocity"},
+    {"name": "vz", "unit": "m/s", "frame": "NED", "description": "down velocity"},
+    {"name": "phi", "unit": "rad", "frame": "ZYX Euler", "description": "roll"},
+    {"name": "theta", "unit": "rad", "frame": "ZYX Euler", "description": "pitch"},
+    {"name": "psi", "unit": "rad", "frame": "ZYX Euler", "description": "yaw"},
+    {"name": "wx", "unit": "rad/s", "frame": "FRD", "description": "body roll rate"},
+    {"name": "wy", "unit": "rad/s", "frame": "FRD", "description": "body pitch rate"},
+    {"name": "wz", "unit": "rad/s", "frame": "FRD", "description": "body yaw rate"},
+)
+INPUT_VARIABLES: tuple[dict[str, str], ...] = (
+    {"name": "u1", "unit": "rad/s", "description": "rotor 1 speed (front-right, CCW)"},
+    {"name": "u2", "unit": "rad/s", "description": "rotor 2 speed (rear-left, CCW)"},
+    {"name": "u3", "unit": "rad/s", "description": "rotor 3 speed (front-left, CW)"},
+    {"name": "u4", "unit": "rad/s", "description": "rotor 4 speed (rear-right, CW)"},
+)
+TARGET_INFO: dict[str, dict[str, str]] = {
+    "ax": {"description": "x'' (north acceleration)", "unit": "m/s^2", "frame": "NED"},
+    "ay": {"description": "y'' (east acceleration)", "unit": "m/s^2", "frame": "NED"},
+    "az": {"description": "z'' (down acceleration)", "unit": "m/s^2", "frame": "NED"},
+    "dwx": {"description": "wx' (body roll acceleration)", "unit": "rad/s^2", "frame": "FRD"},
+    "dwy": {"description": "wy' (body pitch acceleration)", "unit": "rad/s^2", "frame": "FRD"},
+    "dwz": {"description": "wz' (body yaw acceleration)", "unit": "rad/s^2", "frame": "FRD"},
+}
+
+# real=True lets sympy simplify Abs, sqrt etc.; other packages must use these symbols (Model.symbols).
+SYMBOLS: dict[str, sympy.Symbol] = {name: sympy.Symbol(name, real=True) for name in VARIABLE_NAMES}
+
+_FUNCTIONS: dict[str, Callable[..., sympy.Expr]] = {
+    "sin": sympy.sin,
+    "cos": sympy.cos,
+    "tan": sympy.tan,
+    "Abs": sympy.Abs,
+    "abs": sympy.Abs,
+    "sqrt": sympy.sqrt,
+    "exp": sympy.exp,
+    "log": sympy.log,
+}
+_CONSTANTS: dict[str, sympy.Expr] = {"pi": sympy.pi}
+
+
+class ExpressionError(ValueError):
+    """An expression string that is not a formula in the model's variables and building blocks."""
+
+
+def _node_to_sympy(node: ast.AST, names: Mapping[str, sympy.Expr] = SYMBOLS) -> sympy.Expr:
+    def walk(child: ast.AST) -> sympy.Expr:
+        return _node_to_sympy(child, names)
+
+    if isinstance(node, ast.Expression):
+        return walk(node.body)
+    if isinstance(node, ast.Constant):
+        if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
+            raise ExpressionError(f"constant {node.value!r} is not a number")
+        if isinstance(node.value, int):
+            return sympy.Integer(node.value)
+        if not math.isfinite(node.value):
+            raise ExpressionError(f"constant {node.value!r} is not finite")
+        return sympy.Float(node.value)
+    if isinstance(node, ast.Name):
+        if node.id in names:
+            return names[node.id]
+        if node.id in _CONSTANTS:
+            return _CONSTANTS[node.id]
+        raise ExpressionError(f"unknown name {node.id!r} (allowed: {', '.join(names)}, pi)")
+    if isinstance(node, ast.UnaryOp):
+        operand = walk(node.operand)
+        if isinstance(node.op, ast.USub):
+            return -operand
+        if isinstance(node.op, ast.UAdd):
+            return operand
+        raise ExpressionError(f"operator {type(node.op).__name__} is not allowed")
+    if isinstance(node, ast.BinOp):
+        left, right = walk(node.left), walk(node.right)
+        if isinstance(node.op, ast.Add):
+            return left + right
+        if isinstance(node.op, ast.Sub):
+            return left - right
+        if isinstance(node.op, ast.Mult):
+            return left * right
+        if isinstance(node.op, ast.Div):
+            return left / right
+        if isinstance(node.op, ast.Pow):
+            return left**right
+        raise ExpressionError(f"operator {type(node.op).__name__} is not allowed")
+    if isinstance(node, ast.Call):
+        if not isinstance(node.func, ast.Name) or node.func.id not in _FUNCTIONS:
+            name = node.func.id if isinstance(node.func, ast.Name) else ast.unparse(node.func)
+            raise ExpressionError(f"function {name!r} is not allowed (allowed: {', '.join(_FUNCTIONS)})")
+        if node.keywords or len(node.args) != 1:
+            raise ExpressionError(f"function {node.func.id!r} takes exactly one argument")
+        return _FUNCTIONS[node.func.id](walk(node.args[0]))
+    raise ExpressionError(f"'{ast.unparse(node)}' is not allowed in an expression")
+
+
+def parse_expression(text: str, names: Mapping[str, sympy.Expr] | None = None) -> sympy.Expr:
+    """Parse a formula in the 16 variable names (or the given names) into sympy, without eval."""
+    if not isinstance(text, str) or not text.strip():
+        raise ExpressionError("expected a non-empty formula string")
+    try:
+        tree = ast.parse(text.strip().replace("^", "**"), mode="eval")
+    except SyntaxError as exc:
+        raise ExpressionError(f"not a formula: {exc.msg}") from None
+    return _node_to_sympy(tree, SYMBOLS if names is None else names)
+
+
+class _ExactFloatPrinter(StrPrinter):
+    """sympy's str printer, but floats printed as Python's shortest exact repr (lossless round trip)."""
+
+    def _print_Float(self, expr: sympy.Float) -> str:
+        return repr(float(expr))
+
+
+def expression_to_string(expr: sympy.Expr) -> str:
+    """The sympy-parsable string written to the model file (floats exact to the last bit)."""
+    return _ExactFloatPrinter({"order": "none"}).doprint(expr)
+
+
+def check_expression(expr: sympy.Expr) -> None:
+    """Raise ExpressionError if expr uses a symbol that is not a state or input."""
+    bad = sorted(str(s) for s in expr.free_symbols if s not in SYMBOLS.values())
+    if bad:
+        raise ExpressionError(f"unknown names {bad} (allowed: {', '.join(VARIABLE_NAMES)})")
+
+
+def complexity(expr: sympy.Expr) -> int:
+    """The size of an expression: the number of nodes in its sympy tree."""
+    return sum(1 for _ in sympy.preorder_traversal(expr))
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """The SHA-256 of a file's bytes, hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def display_path(path: str | os.PathLike[str]) -> str:
+    """A path as recorded in a model file: relative to the working directory when under it."""
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(p)
+
+
+@dataclass
+class ParetoPoint:
+    """One candidate of a target's Pareto front (complexity against error)."""
+
+    complexity: int
+    loss: float
+    expression: str
+    holdout_loss: float | None = None
+    engine: str | None = None
+
+
+@dataclass
+class TargetModel:
+    """One target's chosen expression with its front, metrics and how it was found."""
+
+    name: str
+    expression: sympy.Expr
+    pareto: list[ParetoPoint] = field(default_factory=list)
+    metrics: dict[str, dict[str, float]] = field(default_factory=dict)
+    engine: str | None = None
+    wall_time_s: float | None = None
+
+    @property
+    def description(self) -> str:
+        """What the target is (for tables and plots)."""
+        return TARGET_INFO[self.name]["description"]
+
+    @property
+    def unit(self) -> str:
+        """The target's SI unit."""
+        return TARGET_INFO[self.name]["unit"]
+
+    @property
+    def frame(self) -> str:
+        """The target's frame: NED for linear, FRD for angular accelerations."""
+        return TARGET_INFO[self.name]["frame"]
+
+
+class Model:
+    """Equations of motion: per target a sympy expression in the 12 states and 4 rotor speeds."""
+
+    state_names: tuple[str, ...] = STATE_NAMES
+    input_names: tuple[str, ...] = INPUT_NAMES
+
+    def __init__(
+        self,
+        targets: Mapping[str, TargetModel | sympy.Expr],
+        kind: str = "learned",
+        vehicle: dict[str, Any] | None = None,
+        flights: list[dict[str, Any]] | None = None,
+        engine: dict[str, Any] | None = None,
+        created: str | None = None,
+        source: str | None = None,
+        extra: dict[str, Any] | None = None,
+    ):
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {KINDS}, not {kind!r}")
+        self.targets: dict[str, TargetModel] = {}
+        for name in TARGET_NAMES:
+            if name not in targets:
+                continue
+            entry = targets[name]
+            if not isinstance(entry, TargetModel):
+                entry = TargetModel(name=name, expression=sympy.sympify(entry))
+            check_expression(entry.expression)
+            self.targets[name] = entry
+        unknown = set(targets) - set(TARGET_NAMES)
+        if unknown:
+            raise ValueError(f"unknown targets {sorted(unknown)} (known: {TARGET_NAMES})")
+        self.kind = kind
+        self.vehicle = vehicle
+        self.flights = list(flights or [])
+        self.engine = dict(engine or {})
+        self.created = created or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+        self.source = source
+        self.extra = dict(extra or {})
+        self._scalar_fn: Callable[..., Any] | None = None
+        self._vector_fns: dict[str, Callable[..., Any]] | None = None
+
+    @property
+    def target_names(self) -> tuple[str, ...]:
+        """The targets this model has an expression for, in the canonical order."""
+        return tuple(self.targets)
+
+    @property
+    def expressions(self) -> dict[str, sympy.Expr]:
+        """Target name -> sympy expression (ax, ay, az NED m/s^2; dwx, dwy, dwz FRD rad/s^2)."""
+        return {name: t.expression for name, t in self.targets.items()}
+
+    @property
+    def symbols(self) -> dict[str, sympy.Symbol]:
+        """Variable name -> sympy Symbol (real), the 12 states then the 4 inputs."""
+        return dict(SYMBOLS)
+
+    @property
+    def state_symbols(self) -> tuple[sympy.Symbol, ...]:
+        """The 12 state symbols in xi order."""
+        return tuple(SYMBOLS[n] for n in STATE_NAMES)
+
+    @property
+    def input_symbols(self) -> tuple[sympy.Symbol, ...]:
+        """The 4 rotor-speed symbols u1..u4."""
+        return tuple(SYMBOLS[n] for n in INPUT_NAMES)
+
+    def _require_all(self) -> None:
+        missing = [n for n in TARGET_NAMES if n not in self.targets]
+        if missing:
+            where = f" {self.source}" if self.source else ""
+            raise UserError(
+                f"model{where} has no expression for {', '.join(missing)}",
+                hint="identify all six targets (quadsr identify without --targets)",
+            )
+
+    def _build(self) -> None:
+        args = [SYMBOLS[n] for n in VARIABLE_NAMES]
+        exprs = [self.targets[n].expression for n in self.target_names]
+        self._scalar_fn = sympy.lambdify(args, exprs, modules="math", cse=True)
+        self._vector_fns = {
+            n: sympy.lambdify(args, self.targets[n].expression, modules="numpy", cse=True)
+            for n in self.target_names
+        }
+
+    def accelerations(self, xi: Any, u: Any) -> np.ndarray:
+        """The six targets at state xi (12,) and rotor speeds u (4,) -> (6,); or (N,12),(N,4) -> (N,6)."""
+        self._require_all()
+        return self.evaluate(xi, u)
+
+    def evaluate(self, xi: Any, u: Any) -> np.ndarray:
+        """The targets this model has (target_names order), like accelerations() but for any subset."""
+        if self._vector_fns is None:
+            self._build()
+        xi_a = np.asarray(xi, dtype=float)
+        u_a = np.asarray(u, dtype=float)
+        if xi_a.shape[-1:] != (12,) or u_a.shape[-1:] != (4,):
+            raise ValueError(f"expected xi (...,12) and u (...,4), got {xi_a.shape} and {u_a.shape}")
+        if xi_a.ndim == 1 and u_a.ndim == 1:
+            try:
+                return np.array(self._scalar_fn(*xi_a.tolist(), *u_a.tolist()), dtype=float)
+            except (ValueError, ZeroDivisionError, OverflowError):
+                pass  # math domain error: fall through to numpy's nan/inf semantics
+        xi2 = np.atleast_2d(xi_a)
+        u2 = np.atleast_2d(u_a)
+        n = max(xi2.shape[0], u2.shape[0])
+        cols = [xi2[:, i] for i in range(12)] + [u2[:, i] for i in range(4)]
+        out = np.empty((n, len(self.targets)))
+        with np.errstate(all="ignore"):
+            for j, name in enumerate(self.target_names):
+                out[:, j] = np.broadcast_to(self._vector_fns[name](*cols), (n,))
+        if xi_a.ndim == 1 and u_a.ndim == 1:
+            return out[0]
+        return out
+
+    @property
+    def kinematics(self) -> dict[str, sympy.Expr]:
+        """The known (not learned) Euler-angle rates phi', theta', psi' (rad/s) as sympy expressions."""
+        from identification.kinematics import euler_rate_expressions
+
+        return euler_rate_expressions(SYMBOLS)
+
+    def state_derivative(self, xi: Any, u: Any) -> np.ndarray:
+        """xi' (12,) or (N,12): velocity NED, accelerations, Euler rates (known), body angular accel."""
+        from identification.kinematics import euler_rates
+
+        xi_a = np.asarray(xi, dtype=float)
+        acc = self.accelerations(xi_a, u)
+        out = np.empty(np.broadcast_shapes(xi_a.shape, acc.shape[:-1] + (12,)))
+        out[..., 0:3] = xi_a[..., 3:6]
+        out[..., 3:6] = acc[..., 0:3]
+        out[..., 6:9] = euler_rates(xi_a[..., 6], xi_a[..., 7], xi_a[..., 9:12])
+        out[..., 9:12] = acc[..., 3:6]
+        return out
+
+    def functions(self) -> dict[str, Callable[..., Any]]:
+        """Target -> numpy function of the 16 variables (x..wz, u1..u4) as separate arguments."""
+        if self._vector_fns is None:
+            self._build()
+        assert self._vector_fns is not None
+        return dict(self._vector_fns)
+
+
+# ---------------------------------------------------------------------------------------------------
+# writing
+
+
+def _plain(value: Any) -> Any:
+    """Numpy scalars and tuples to YAML-safe builtins."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None if math.isnan(value) else value
+    return value
+
+
+def model_to_dict(model: Model) -> dict[str, Any]:
+    """The model as the YAML mapping of docs/design.md."""
+    targets: dict[str, Any] = {}
+    for name, t in model.targets.items():
+        entry: dict[str, Any] = dict(TARGET_INFO[name])
+        entry["expression"] = expression_to_string(t.expression)
+        entry["complexity"] = complexity(t.expression)
+        if t.engine is not None:
+            entry["engine"] = t.engine
+        if t.wall_time_s is not None:
+            entry["wall_time_s"] = round(float(t.wall_time_s), 3)
+        entry["pareto"] = []
+        for p in t.pareto:
+            point: dict[str, Any] = {"complexity": int(p.complexity), "loss": float(p.loss)}
+            if p.holdout_loss is not None:
+                point["holdout_loss"] = float(p.holdout_loss)
+            if p.engine is not None:
+                point["engine"] = p.engine
+            point["expression"] = p.expression
+            entry["pareto"].append(point)
+        if t.metrics:
+            entry["metrics"] = _plain(t.metrics)
+        targets[name] = entry
+    data: dict[str, Any] = {
+        "format": FORMAT,
+        "kind": model.kind,
+        "created": model.created,
+        "vehicle": _plain(model.vehicle),
+        "flights": _plain(model.flights),
+        "variables": {
+            "states": [dict(v) for v in STATE_VARIABLES],
+            "inputs": [dict(v) for v in INPUT_VARIABLES],
+        },
+        "targets": targets,
+        "engine": _plain(model.engine),
+    }
+    data.update(_plain(model.extra))
+    return data
+
+
+def save_model(model: Model, path: str | os.PathLike[str]) -> Path:
+    """Write the model as YAML (atomically: a killed run never leaves half a file)."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    text = yaml.safe_dump(model_to_dict(model), sort_keys=False, width=100000, allow_unicode=True)
+    tmp = out.with_name(out.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, out)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# reading
+
+
+class _Reader:
+    """Typed access to the parsed YAML, every failure a UserError naming the file and key."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def fail(self, key: str, message: str) -> UserError:
+        return UserError(
+            f"{self.path}: {key}: {message}",
+            hint="regenerate it with `quadsr identify` or `quadsr model-from-vehicle`, or fix that key",
+        )
+
+    def mapping(self, value: Any, key: str) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
+        return value
+
+    def number(self, value: Any, key: str, integer: bool = False, optional: bool = False) -> Any:
+        if value is None and optional:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, f"expected a number, got {value!r}")
+        if integer and not float(value).is_integer():
+            raise self.fail(key, f"expected an integer, got {value!r}")
+        return int(value) if integer else float(value)
+
+    def expression(self, value: Any, key: str) -> sympy.Expr:
+        try:
+            expr = parse_expression(value)
+            check_expression(expr)
+        except ExpressionError as exc:
+            raise self.fail(key, str(exc)) from None
+        return expr
+
+
+def _read_variables(r: _Reader, data: dict[str, Any]) -> None:
+    if "variables" not in data:
+        return  # optional: the names are fixed by the format
+    variables = r.mapping(data["variables"], "variables")
+    for key, expected in (("states", STATE_NAMES), ("inputs", INPUT_NAMES)):
+        items = variables.get(key)
+        if not isinstance(items, list):
+            raise r.fail(f"variables.{key}", "expected a list of {name, unit, ...}")
+        names = []
+        for i, item in enumerate(items):
+            item = r.mapping(item, f"variables.{key}[{i}]")
+            names.append(item.get("name"))
+        if tuple(names) != expected:
+            raise r.fail(
+                f"variables.{key}", f"expected the names {list(expected)} in this order, got {names}"
+            )
+
+
+def _read_target(r: _Reader, name: str, raw: Any) -> TargetModel:
+    key = f"targets.{name}"
+    entry = r.mapping(raw, key)
+    if "expression" not in entry:
+        raise r.fail(f"{key}.expression", "missing")
+    expr = r.expression(entry["expression"], f"{key}.expression")
+    pareto: list[ParetoPoint] = []
+    raw_front = entry.get("pareto", [])
+    if raw_front is None:
+        raw_front = []
+    if not isinstance(raw_front, list):
+        raise r.fail(f"{key}.pareto", "expected a list of {complexity, loss, expression}")
+    for i, point in enumerate(raw_front):
+        pkey = f"{key}.pareto[{i}]"
+        point = r.mapping(point, pkey)
+        for needed in ("complexity", "loss", "expression"):
+            if needed not in point:
+                raise r.fail(f"{pkey}.{needed}", "missing")
+        r.expression(point["expression"], f"{pkey}.expression")
+        pareto.append(
+            ParetoPoint(
+                complexity=r.number(point["complexity"], f"{pkey}.complexity", integer=True),
+                loss=r.number(point["loss"], f"{pkey}.loss"),
+                expression=str(point["expression"]),
+                holdout_loss=r.number(point.get("holdout_loss"), f"{pkey}.holdout_loss", optional=True),
+                engine=point.get("engine"),
+            )
+        )
+    metrics: dict[str, dict[str, float]] = {}
+    if entry.get("metrics") is not None:
+        raw_metrics = r.mapping(entry["metrics"], f"{key}.metrics")
+        for split, values in raw_metrics.items():
+            values = r.mapping(values, f"{key}.metrics.{split}")
+            metrics[str(split)] = {
+                str(m): r.number(v, f"{key}.metrics.{split}.{m}", optional=True) for m, v in values.items()
+            }
+    wall = r.number(entry.get("wall_time_s"), f"{key}.wall_time_s", optional=True)
+    return TargetModel(
+        name=name,
+        expression=expr,
+        pareto=pareto,
+        metrics=metrics,
+        engine=entry.get("engine"),
+        wall_time_s=wall,
+    )
+
+
+def load_model(path: str | os.PathLike[str]) -> Model:
+    """Read a model.yaml; a missing, unreadable or malformed file is a UserError naming file and key."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise UserError(
+            f"model file {p} does not exist",
+            hint="write one with `quadsr identify` or `quadsr model-from-vehicle`",
+        ) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"cannot read model file {p}: {exc}") from None
+    r = _Reader(p)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise r.fail("(document)", f"not valid YAML: {exc}") from None
+    if data is None:
+        raise r.fail("(document)", "the file is empty")
+    data = r.mapping(data, "(document)")
+    if "format" not in data:
+        raise r.fail("format", f"missing (expected {FORMAT!r})")
+    if data["format"] != FORMAT:
+        raise r.fail("format", f"unsupported {data['format']!r} (this quadsr reads {FORMAT!r})")
+    kind = data.get("kind", "learned")
+    if kind not in KINDS:
+        raise r.fail("kind", f"{kind!r} is not one of {list(KINDS)}")
+    _read_variables(r, data)
+    if "targets" not in data:
+        raise r.fail("targets", "missing")
+    raw_targets = r.mapping(data["targets"], "targets")
+    if not raw_targets:
+        raise r.fail("targets", "no targets")
+    unknown = [k for k in raw_targets if k not in TARGET_NAMES]
+    if unknown:
+        raise r.fail(f"targets.{unknown[0]}", f"unknown target (known: {', '.join(TARGET_NAMES)})")
+    targets = {name: _read_target(r, name, raw_targets[name]) for name in TARGET_NAMES if name in raw_targets}
+    vehicle = data.get("vehicle")
+    if vehicle is not None:
+        vehicle = r.mapping(vehicle, "vehicle")
+    flights = data.get("flights") or []
+    if not isinstance(flights, list):
+        raise r.fail("flights", "expected a list of {file, sha256, format}")
+    for i, f in enumerate(flights):
+        r.mapping(f, f"flights[{i}]")
+    engine = data.get("engine") or {}
+    engine = r.mapping(engine, "engine")
+    created = data.get("created")
+    known = {"format", "kind", "created", "vehicle", "flights", "variables", "targets", "engine"}
+    extra = {k: v for k, v in data.items() if k not in known}
+    return Model(
+        targets,
+        kind=kind,
+        vehicle=vehicle,
+        flights=flights,
+        engine=engine,
+        created=str(created) if created is not None else None,
+        source=str(p),
+        extra=extra,
+    )

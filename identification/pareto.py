@@ -1,0 +1,80 @@
+"""One Pareto front per target (complexity against error) and the final pick on held-out data.
+
+The pick: among candidates with a finite held-out loss, let `best` be the smallest held-out loss; choose the
+least complex candidate whose held-out loss is <= best * (1 + rel_tol) + abs_tol * std(held-out target),
+ties broken by the lower held-out loss. rel_tol (2%) lets a simpler model win when extra terms only fit
+noise; abs_tol (1e-9 of the target's spread) treats differences at rounding level as equal on noise-free data.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from identification.engine import Candidate, SelectionSettings
+from identification.metrics import loss as loss_fn
+from identification.model_file import ParetoPoint, expression_to_string
+
+
+def attach_holdout(candidates: Sequence[Candidate], X: np.ndarray, y: np.ndarray, loss: str) -> None:
+    """Set each candidate's held-out loss on (X (N,16), y (N,)); inf when its prediction is not finite."""
+    for c in candidates:
+        if len(y) == 0:
+            c.holdout_loss = float("nan")
+            continue
+        try:
+            c.holdout_loss = loss_fn(y, c.evaluate(X), loss)
+        except (ValueError, TypeError, ZeroDivisionError, OverflowError):
+            c.holdout_loss = float("inf")
+
+
+def _score(c: Candidate) -> float:
+    value = c.holdout_loss if c.holdout_loss is not None and not math.isnan(c.holdout_loss) else c.train_loss
+    return value if math.isfinite(value) else float("inf")
+
+
+def pareto_front(candidates: Sequence[Candidate]) -> list[Candidate]:
+    """The non-dominated candidates (complexity against held-out loss, else train loss), by complexity."""
+    front: list[Candidate] = []
+    best = float("inf")
+    for c in sorted(candidates, key=lambda c: (c.complexity, _score(c))):
+        s = _score(c)
+        if s < best:
+            front.append(c)
+            best = s
+    return front
+
+
+def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: float = 1.0) -> Candidate:
+    """The final pick (module docstring); scale is the held-out target's standard deviation."""
+    if not candidates:
+        raise ValueError("no candidates to choose from")
+    scored = [(c, _score(c)) for c in candidates]
+    finite = [(c, s) for c, s in scored if math.isfinite(s)]
+    if not finite:
+        return min(candidates, key=lambda c: c.complexity)
+    best = min(s for _, s in finite)
+    limit = best * (1.0 + settings.rel_tol) + settings.abs_tol * (scale if scale > 0 else 1.0)
+    ok = [(c, s) for c, s in finite if s <= limit]
+    return min(ok, key=lambda cs: (cs[0].complexity, cs[1]))[0]
+
+
+def front_points(candidates: Sequence[Candidate], chosen: Candidate | None = None) -> list[ParetoPoint]:
+    """The front as model-file points (the chosen candidate always included)."""
+    front = pareto_front(candidates)
+    if chosen is not None and all(c is not chosen for c in front):
+        front = sorted([*front, chosen], key=lambda c: c.complexity)
+    return [
+        ParetoPoint(
+            complexity=int(c.complexity),
+            loss=float(c.train_loss),
+            holdout_loss=None
+            if c.holdout_loss is None or math.isnan(c.holdout_loss)
+            else float(c.holdout_loss),
+            expression=expression_to_string(c.expression),
+            engine=c.engine or None,
+        )
+        for c in front
+    ]

@@ -1,0 +1,277 @@
+"""ArduPilot DataFlash (.bin, through pymavlink's DFReader) -> Dataset.
+
+Messages (times from TimeUS, us since boot):
+- ATT: Roll, Pitch, Yaw in degrees (Yaw 0..360) -> ZYX Euler rad, wrapped to [-pi, pi). Its times are the
+  default timeline (rate_hz gives a uniform one instead).
+- RATE: R, P, Y body rates in deg/s -> FRD rad/s (ArduPilot's body frame is also x forward, y right, z
+  down). Without RATE, the gyro of IMU instance 0 is used.
+- XKF1 (EKF3 core C = 0; NKF1 for EKF2 logs): PN PE PD (m) and VN VE VD (m/s), NED from the EKF origin.
+  Without it, POS (Lat, Lng in deg, Alt in m AMSL) made local NED (flat earth from the first fix), with
+  the velocity by Savitzky-Golay differentiation, and a warning.
+- IMU (instance 0): GyrX..Z (rad/s) and AccX..Z (specific force, m/s^2), FRD.
+- rotor speeds: ESC RPM (rpm -> rad/s) per Instance, or with a motor curve RCOU C1..C14 PWM (us) ->
+  throttle (PWM - MOT_PWM_MIN) / (MOT_PWM_MAX - MOT_PWM_MIN) (1000 and 2000 us when unset) -> curve.
+  Motor order: ArduPilot's Quad-X numbers its motors like PX4 (AP_MotorsMatrix: motor 1 at 45 deg =
+  front-right CCW, 2 at -135 deg = rear-left CCW, 3 at -45 deg = front-left CW, 4 at 135 deg = rear-right
+  CW; only the motor-test letters A-D go round clockwise: A = 1, B = 4, C = 2, D = 3). What differs per
+  airframe is which output channel drives which motor: SERVOn_FUNCTION = 33..36 means channel n drives
+  motor 1..4. We map RCOU channel n and ESC instance n-1 through those parameters (identity when the log
+  has none) into u1..u4 in PX4 order.
+- targets 'truth': the log's state differentiated (XKF1 velocity, RATE rates) by Savitzky-Golay with each
+  column's window chosen as for sensor targets (identification.targets.choose_savgol); a 25 Hz XKF1
+  follows only the slower accelerations. 'sensors': IMU specific force rotated with ATT plus g, IMU gyro
+  differentiated (identification.targets), at the IMU rate, then resampled.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.errors import UserError
+from identification.dataset import Dataset
+from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.targets import (
+    STANDARD_GRAVITY,
+    SensorTargetSettings,
+    nominal_step,
+    sensor_targets,
+    stream_derivative,
+)
+
+RPM_TO_RAD_S = 2.0 * math.pi / 60.0
+MOTOR_FUNCTIONS = (33, 34, 35, 36)  # SERVOn_FUNCTION of Motor1..Motor4
+EARTH_RADIUS = 6378137.0  # m, WGS84 equatorial
+WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "POS", "ESC", "RCOU")
+
+
+def _walk(data: bytes) -> tuple[int, int]:
+    """(bytes the last record lacks, bytes of garbage skipped) by walking the records with their FMTs."""
+    lengths = {0x80: 89}
+    i, n, garbage = 0, len(data), 0
+    while i + 3 <= n:
+        if data[i] != 0xA3 or data[i + 1] != 0x95 or data[i + 2] not in lengths:
+            garbage += 1
+            i += 1
+            continue
+        mtype = data[i + 2]
+        size = lengths[mtype]
+        if i + size > n:
+            return i + size - n, garbage
+        if mtype == 0x80:
+            lengths[data[i + 3]] = data[i + 4]
+        i += size
+    return 0, garbage + (n - i)
+
+
+def _read(path: Path) -> tuple[dict[str, list[Any]], dict[str, float], list[str]]:
+    """Messages of the wanted types, the parameters, and warnings (truncation, skipped garbage)."""
+    from pymavlink import DFReader
+
+    data = path.read_bytes()
+    notes = []
+    cut, garbage = _walk(data)
+    if cut:
+        notes.append(
+            f"dataflash log {path} is truncated (its last record lacks {cut} bytes): using what it holds"
+        )
+    if garbage:
+        notes.append(f"dataflash log {path}: skipped {garbage} bytes that were not records (corrupt?)")
+    sink = io.StringIO()
+    msgs: dict[str, list[Any]] = {k: [] for k in WANTED}
+    try:
+        with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+            reader = DFReader.DFReader_binary(str(path), zero_time_base=True)
+            while True:
+                m = reader.recv_match(type=list(WANTED))
+                if m is None:
+                    break
+                msgs[m.get_type()].append(m)
+            params = dict(reader.params)
+            reader.close()
+    except (struct.error, ValueError, KeyError, IndexError, OSError, Exception) as exc:
+        raise UserError(
+            f"dataflash log {path} is corrupt: {type(exc).__name__}: {exc}",
+            hint="is it an ArduPilot .bin log? it must start with FMT records",
+        ) from None
+    return msgs, params, notes
+
+
+def _need(msgs: dict[str, list[Any]], name: str, path: Path, why: str) -> list[Any]:
+    if not msgs.get(name):
+        have = ", ".join(k for k, v in msgs.items() if v) or "none of " + ", ".join(WANTED)
+        raise UserError(
+            f"dataflash log {path} has no {name} messages; they are needed for {why}",
+            hint=f"messages found: {have}",
+        )
+    return msgs[name]
+
+
+def _field(msgs: list[Any], name: str, path: Path) -> np.ndarray:
+    try:
+        return np.array([getattr(m, name) for m in msgs], dtype=float)
+    except AttributeError:
+        raise UserError(f"dataflash log {path}: {msgs[0].get_type()} has no field {name}") from None
+
+
+def _times(msgs: list[Any], path: Path) -> np.ndarray:
+    return _field(msgs, "TimeUS", path) * 1e-6
+
+
+def _motor_of_channel(params: dict[str, float]) -> dict[int, int]:
+    """Motor index 0..3 of each output channel (1-based) from SERVOn_FUNCTION; channels 1..4 by default."""
+    found = {}
+    for key, value in params.items():
+        if key.startswith("SERVO") and key.endswith("_FUNCTION") and int(value) in MOTOR_FUNCTIONS:
+            try:
+                ch = int(key[5:-9])
+            except ValueError:
+                continue
+            found[ch] = int(value) - 33
+    if sorted(found.values()) == [0, 1, 2, 3]:
+        return found
+    return {1: 0, 2: 1, 3: 2, 4: 3}
+
+
+def _esc_stream(msgs: list[Any], channels: dict[int, int], path: Path) -> Stream:
+    t = _times(msgs, path)
+    inst = _field(msgs, "Instance", path).astype(int)
+    rpm = _field(msgs, "RPM", path)
+    # One ESC record per instance: group them per time stamp into rows of 4 motors (the batch of one loop).
+    times = np.unique(t)
+    speeds = np.full((len(times), 4), np.nan)
+    row = np.searchsorted(times, t)
+    for r, i, v in zip(row, inst, rpm, strict=True):
+        motor = channels.get(int(i) + 1)
+        if motor is not None:
+            speeds[r, motor] = v * RPM_TO_RAD_S
+    # carry the last value of a motor whose record came in another batch
+    for j in range(4):
+        col = speeds[:, j]
+        idx = np.where(np.isfinite(col), np.arange(len(col)), 0)
+        np.maximum.accumulate(idx, out=idx)
+        speeds[:, j] = np.where(np.isfinite(col[idx]), col[idx], np.nan)
+    return Stream("ESC", times, speeds)
+
+
+def _rcou_stream(msgs: list[Any], channels: dict[int, int], params: dict[str, float], path: Path) -> Stream:
+    lo = params.get("MOT_PWM_MIN") or 1000.0
+    hi = params.get("MOT_PWM_MAX") or 2000.0
+    t = _times(msgs, path)
+    thr = np.full((len(t), 4), np.nan)
+    for ch, motor in channels.items():
+        thr[:, motor] = np.clip((_field(msgs, f"C{ch}", path) - lo) / (hi - lo), 0.0, 1.0)
+    return Stream("RCOU", t, thr)
+
+
+def _position_streams(msgs: dict[str, list[Any]], path: Path, notes: list[str]) -> Stream:
+    """Position NED (m) and velocity NED (m/s) as one stream, from XKF1 core 0 or else POS."""
+    ekf = msgs["XKF1"] or msgs["NKF1"]
+    if ekf:
+        core = _field(ekf, "C", path) if hasattr(ekf[0], "C") else np.zeros(len(ekf))
+        first = [m for m, c in zip(ekf, core, strict=True) if c == core.min()]
+        cols = ("PN", "PE", "PD", "VN", "VE", "VD")
+        return Stream(
+            ekf[0].get_type(), _times(first, path), np.column_stack([_field(first, c, path) for c in cols])
+        )
+    pos = _need(msgs, "POS", path, "the position and velocity (no XKF1 either)")
+    t = _times(pos, path)
+    lat, lon, alt = (_field(pos, c, path) for c in ("Lat", "Lng", "Alt"))
+    north = np.radians(lat - lat[0]) * EARTH_RADIUS
+    east = np.radians(lon - lon[0]) * EARTH_RADIUS * math.cos(math.radians(lat[0]))
+    down = -(alt - alt[0])
+    p = np.column_stack((north, east, down))
+    v = stream_derivative(t, p)
+    notes.append("no XKF1: position from POS (flat earth from the first fix), velocity by differentiating it")
+    return Stream("POS", t, np.column_stack((p, v)))
+
+
+def read_dataflash_dataset(
+    path: Path,
+    targets: str = "truth",
+    motor_curve: Any = None,
+    rate_hz: float | None = None,
+    gravity: float | None = None,
+    sensor_settings: SensorTargetSettings | None = None,
+) -> Dataset:
+    """Dataset of an ArduPilot DataFlash log: EKF states, rotor speeds (ESC or RCOU via a curve), targets."""
+    msgs, params, notes = _read(path)
+    att = _need(msgs, "ATT", path, "the attitude")
+    rotor = rotor_model(motor_curve)
+    channels = _motor_of_channel(params)
+
+    s_att = Stream(
+        "ATT",
+        _times(att, path),
+        np.radians(np.column_stack([_field(att, c, path) for c in ("Roll", "Pitch", "Yaw")])),
+        kind="angle",
+    )
+    imu = [m for m in msgs["IMU"] if getattr(m, "I", 0) == 0]
+    if msgs["RATE"]:
+        rate = msgs["RATE"]
+        s_rate = Stream(
+            "RATE",
+            _times(rate, path),
+            np.radians(np.column_stack([_field(rate, c, path) for c in ("R", "P", "Y")])),
+        )
+    else:
+        if not imu:
+            _need(msgs, "RATE", path, "the body rates (no IMU either)")
+        s_rate = Stream(
+            "IMU gyro",
+            _times(imu, path),
+            np.column_stack([_field(imu, c, path) for c in ("GyrX", "GyrY", "GyrZ")]),
+        )
+        notes.append("no RATE: body rates from the IMU gyro")
+    s_pos = _position_streams(msgs, path, notes)
+    if rotor is None:
+        esc = _need(msgs, "ESC", path, "the rotor speeds (RPM); or pass a motor curve to use RCOU")
+        s_rotor = _esc_stream(esc, channels, path)
+    else:
+        rcou = _need(msgs, "RCOU", path, "the motor commands (PWM) mapped through the motor curve")
+        s_rotor = _rcou_stream(rcou, channels, params, path)
+        notes.append(f"rotor speeds from RCOU PWM through {rotor.description}")
+
+    settings = sensor_settings or SensorTargetSettings()
+    if targets == "truth":
+        d_v = stream_derivative(s_pos.t, s_pos.values[:, 3:6])
+        d_w = stream_derivative(s_rate.t, s_rate.values)
+        s_tgt = Stream(f"{s_pos.name} velocity derivative", s_pos.t, d_v)
+        s_dw = Stream(f"{s_rate.name} derivative", s_rate.t, d_w)
+    else:
+        if not imu:
+            _need(msgs, "IMU", path, "the 'sensors' targets")
+        ti = _times(imu, path)
+        acc = np.column_stack([_field(imu, c, path) for c in ("AccX", "AccY", "AccZ")])
+        gyro = np.column_stack([_field(imu, c, path) for c in ("GyrX", "GyrY", "GyrZ")])
+        euler, ok = s_att.resample(ti)
+        euler[~ok] = np.nan
+        g = STANDARD_GRAVITY if gravity is None else float(gravity)
+        st = sensor_targets(ti, acc, gyro, euler, gravity=g, settings=settings, dt=nominal_step(ti))
+        notes.append(f"sensor targets (g = {g:g} m/s^2): {st.describe(nominal_step(ti))}")
+        s_tgt = Stream("IMU", ti, st.values[:, :3])
+        s_dw = Stream("IMU gyro derivative", ti, st.values[:, 3:])
+
+    streams = [s_att, s_rate, s_pos, s_rotor, s_tgt, s_dw]
+    timeline = uniform_timeline(streams, rate_hz) if rate_hz else s_att.t
+    filt = RowFilter(len(timeline))
+    vals = {}
+    for s in streams:
+        v, ok = s.resample(timeline)
+        vals[s.name] = v
+        filt.drop(f"gap in {s.name}", ~ok)
+    xi = np.concatenate((vals[s_pos.name], vals[s_att.name], vals[s_rate.name]), axis=1)
+    if rotor is not None:
+        thr = vals[s_rotor.name]
+        u, settled = rotor.speeds(timeline, thr)
+        filt.drop("motor lag settling after the start or a gap", ~settled & np.isfinite(thr).all(axis=1))
+    else:
+        u = vals[s_rotor.name]
+    tgt = np.concatenate((vals[s_tgt.name], vals[s_dw.name]), axis=1)
+    return make_dataset(path, "dataflash", targets, timeline, xi, u, tgt, filt, notes)

@@ -1,0 +1,252 @@
+"""Our .tlog (a quadsr HIL flight) -> Dataset.
+
+One row per SITL step (4 ms) that has all its frames: HIL_STATE_QUATERNION (attitude -> ZYX Euler, body
+rates), LOCAL_POSITION_NED (float position and velocity, the precise truth), the rotor speeds (RAW_RPM per
+rotor, index 0..3 = motors 1..4, as bridge.messages sends them; ESC_STATUS where a dialect has it) and
+HIL_SENSOR. Only frames from the SITL's HIL component (the sender of HIL_SENSOR) are used; the time-0
+datagram the SITL repeats while waiting is counted once.
+
+Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
+free-flight equations do not hold) are dropped, as are rows whose differentiation stencil would span a
+missing step or a resting row. Sensor targets also drop rows whose window holds a clamped IMU sample
+(+-16 g, +-2000 deg/s).
+"""
+
+from __future__ import annotations
+
+import warnings as pywarnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.errors import UserError
+from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT, RPM_TO_RAD_S, ObservationAssembler
+from bridge.tlog import read_tlog
+from identification.dataset import Dataset
+from identification.readers import RowFilter, make_dataset, rotor_model
+from identification.targets import (
+    STANDARD_GRAVITY,
+    SensorTargetSettings,
+    euler_from_quaternions,
+    sensor_targets,
+    truth_targets,
+)
+
+STEP_S = 0.004
+KINK_THROTTLE = 0.02  # a command change above this (about 23 rad/s for the default vehicle) is a kink
+_STATE_TYPES = {
+    "HIL_STATE_QUATERNION",
+    "LOCAL_POSITION_NED",
+    "RAW_RPM",
+    "HIL_GPS",
+    "HIL_SENSOR",
+    "ESC_STATUS",
+}
+
+
+def _collect(path: Path) -> tuple[list[Any], list[Any], list[str]]:
+    """(messages from the SITL's HIL component, the companion's HIL_ACTUATOR_CONTROLS, warnings)."""
+    notes: list[str] = []
+    with pywarnings.catch_warnings(record=True) as caught:
+        pywarnings.simplefilter("always")
+        msgs = [m for _, m in read_tlog(path)]
+    for w in caught:
+        notes.append(str(w.message))
+    source = None
+    for m in msgs:
+        if m.get_type() == "HIL_SENSOR":
+            source = (m.get_srcSystem(), m.get_srcComponent())
+            break
+    if source is None:
+        types = sorted({m.get_type() for m in msgs})
+        raise UserError(
+            f"telemetry log {path} has no HIL_SENSOR message, so no SITL steps "
+            f"({len(msgs)} frames of: {', '.join(types[:8]) or 'nothing'})",
+            hint="record the flight with `quadsr excite --out FILE.tlog` or `quadsr sitl --log FILE.tlog`",
+        )
+    sitl = [
+        m
+        for m in msgs
+        if (m.get_srcSystem(), m.get_srcComponent()) == source and m.get_type() in _STATE_TYPES
+    ]
+    commands = [m for m in msgs if m.get_type() == "HIL_ACTUATOR_CONTROLS"]
+    return sitl, commands, notes
+
+
+def _esc_speeds(msg: Any) -> np.ndarray:
+    out = np.full(4, np.nan)
+    base = int(getattr(msg, "index", 0))
+    for i, rpm in enumerate(msg.rpm):
+        if 0 <= base + i < 4:
+            out[base + i] = rpm * RPM_TO_RAD_S
+    return out
+
+
+def read_tlog_dataset(
+    path: Path,
+    targets: str = "truth",
+    motor_curve: Any = None,
+    rate_hz: float | None = None,
+    gravity: float | None = None,
+    sensor_settings: SensorTargetSettings | None = None,
+) -> Dataset:
+    """Dataset of a quadsr .tlog: truth states, true rotor speeds, targets from truth or sensors."""
+    decimation = 1
+    if rate_hz is not None:
+        factor = (1.0 / STEP_S) / rate_hz
+        if abs(factor - round(factor)) > 1e-6 or round(factor) < 1:
+            raise UserError(
+                f"rate {rate_hz:g} Hz does not divide the tlog's 250 Hz steps",
+                hint="use 250, 125, 83.33, 62.5, 50, ... Hz",
+            )
+        decimation = int(round(factor))
+    msgs, commands, notes = _collect(path)
+    types = {m.get_type() for m in msgs}
+    for needed, what in (
+        ("HIL_STATE_QUATERNION", "the true attitude and body rates"),
+        ("LOCAL_POSITION_NED", "the true position and velocity"),
+    ):
+        if needed not in types:
+            raise UserError(
+                f"telemetry log {path} has no {needed} message ({what})",
+                hint="is this a quadsr SITL flight log?",
+            )
+    have_rpm = bool(types & {"RAW_RPM", "ESC_STATUS"})
+    rotor = rotor_model(motor_curve) if not have_rpm else None
+    if have_rpm and motor_curve is not None:
+        notes.append("motor curve not used: the log has the true rotor speeds")
+    if not have_rpm and rotor is None:
+        raise UserError(
+            f"telemetry log {path} has no rotor speeds (no RAW_RPM or ESC_STATUS message)",
+            hint="pass --motor-curve (a vehicle or 'slope,offset') to use the motor commands instead",
+        )
+
+    assembler = ObservationAssembler()
+    rows: dict[int, dict[str, Any]] = {}
+    duplicates = 0
+    esc: dict[int, np.ndarray] = {}
+    pending_esc = None
+    for m in msgs:
+        if m.get_type() == "ESC_STATUS":
+            pending_esc = _esc_speeds(m)
+            continue
+        obs = assembler.add(m)
+        if obs is None:
+            continue
+        if obs.time_usec in rows:
+            duplicates += 1
+            continue
+        if pending_esc is not None:
+            esc[obs.time_usec] = pending_esc
+            pending_esc = None
+        rows[obs.time_usec] = {"obs": obs}
+
+    times = np.array(sorted(rows), dtype=np.int64)
+    n = len(times)
+    t = times * 1e-6
+    pos = np.full((n, 3), np.nan)
+    vel = np.full((n, 3), np.nan)
+    quat = np.full((n, 4), np.nan)
+    rates = np.full((n, 3), np.nan)
+    u = np.full((n, 4), np.nan)
+    acc = np.full((n, 3), np.nan)
+    gyro = np.full((n, 3), np.nan)
+    filt = RowFilter(n)
+    no_hsq = np.zeros(n, bool)
+    no_lpn = np.zeros(n, bool)
+    for i, tu in enumerate(times):
+        obs = rows[int(tu)]["obs"]
+        acc[i] = obs.imu.accel
+        gyro[i] = obs.imu.gyro
+        if obs.truth is None:
+            no_hsq[i] = True
+        else:
+            pos[i] = obs.truth.position
+            vel[i] = obs.truth.velocity
+            quat[i] = obs.truth.quaternion
+            rates[i] = obs.truth.rates
+            no_lpn[i] = not np.isfinite(obs.truth.position).all()
+        if obs.rotor_speeds is not None:
+            u[i] = obs.rotor_speeds
+        elif int(tu) in esc:
+            u[i] = esc[int(tu)]
+
+    if rotor is not None:
+        u, settled = _speeds_from_commands(times, commands, rotor)
+        filt.drop("motor lag settling after the start", ~settled)
+        notes.append(f"rotor speeds from HIL_ACTUATOR_CONTROLS through {rotor.description}")
+
+    filt.drop("step without HIL_STATE_QUATERNION", no_hsq)
+    filt.drop("step without LOCAL_POSITION_NED", no_lpn)
+    filt.drop("step without rotor speeds", ~np.isfinite(u).all(axis=1))
+    resting = (pos[:, 2] >= -1e-3) & (np.abs(vel) <= 1e-3).all(axis=1) & (np.abs(rates) <= 1e-3).all(axis=1)
+    filt.drop("resting on the ground", resting)
+
+    euler = euler_from_quaternions(quat)
+    usable = ~(no_hsq | no_lpn | resting | ~np.isfinite(u).all(axis=1))
+    idx = np.flatnonzero(usable)
+    tgt = np.full((n, 6), np.nan)
+    if targets == "truth":
+        kinks = _command_kinks(times, commands)
+        tgt[idx] = truth_targets(
+            t[idx], vel[idx], rates[idx], dt=STEP_S, kinks=None if kinks is None else kinks[idx]
+        )
+    else:
+        g = STANDARD_GRAVITY if gravity is None else float(gravity)
+        st = sensor_targets(
+            t[idx], acc[idx], gyro[idx], euler[idx], gravity=g, settings=sensor_settings, dt=STEP_S
+        )
+        tgt[idx] = st.values
+        notes.append(f"sensor targets (g = {g:g} m/s^2): {st.describe(STEP_S)}")
+        half = st.max_half_window
+        clipped = (np.abs(gyro) >= GYRO_LIMIT * (1 - 1e-6)).any(axis=1) | (
+            np.abs(acc) >= ACCEL_LIMIT * (1 - 1e-6)
+        ).any(axis=1)
+        filt.drop("IMU sample clamped in the window (+-16 g / +-2000 deg/s)", _dilate(clipped, half))
+
+    if rate_hz is not None:
+        filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
+
+    state = np.concatenate((pos, vel, euler, rates), axis=1)
+    extra = {"duplicate time-0 datagram (SITL waiting)": duplicates} if duplicates else {}
+    state_times = {int(m.time_usec) for m in msgs if m.get_type() == "HIL_STATE_QUATERNION"}
+    no_sensor = len(state_times - set(rows))
+    if no_sensor:
+        extra["step without HIL_SENSOR"] = no_sensor
+    return make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra)
+
+
+def _dilate(mask: np.ndarray, half: int) -> np.ndarray:
+    """True within `half` samples of a True sample."""
+    if half <= 0 or not mask.any():
+        return mask
+    kernel = np.ones(2 * half + 1)
+    return np.convolve(mask.astype(float), kernel, mode="same") > 0
+
+
+def _command_kinks(times: np.ndarray, commands: list[Any]) -> np.ndarray | None:
+    """Steps (N,) where a motor command changed by more than KINK_THROTTLE: the accelerations' slope jumps
+    there (the motor lag starts toward the new speed). None when the log holds no commands."""
+    if not commands:
+        return None
+    by_time = {int(c.time_usec): np.asarray(c.controls[:4], dtype=float) for c in commands}
+    cmd = np.full((len(times), 4), np.nan)
+    for i, tu in enumerate(times):
+        if int(tu) in by_time:
+            cmd[i] = by_time[int(tu)]
+    jump = np.abs(np.diff(cmd, axis=0)).max(axis=1)
+    kinks = np.concatenate(([False], ~(jump <= KINK_THROTTLE)))  # unknown command: assume a kink
+    return kinks
+
+
+def _speeds_from_commands(times: np.ndarray, commands: list[Any], rotor) -> tuple[np.ndarray, np.ndarray]:
+    """(rotor speeds (N,4) rad/s, settled (N,)) at step times (us) from the throttles the companion sent."""
+    by_time = {int(c.time_usec): c.controls[:4] for c in commands}
+    thr = np.zeros((len(times), 4))
+    last = np.zeros(4)
+    for i, tu in enumerate(times):
+        # the command answering step k is held from step k to k+1 (RotorModel.speeds integrates it so)
+        last = np.asarray(by_time.get(int(tu), last), dtype=float)
+        thr[i] = last
+    return rotor.speeds(times * 1e-6, thr)

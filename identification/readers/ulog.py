@@ -1,0 +1,309 @@
+"""PX4 ULog (.ulg, through pyulog) -> Dataset.
+
+Topics (instance 0; times from timestamp_sample where the topic has it, else timestamp):
+- vehicle_local_position: x y z, vx vy vz (NED m, m/s), ax ay az (NED m/s^2, the estimator's acceleration);
+  rows where its xy/z/v_xy/v_z_valid flags are false are dropped.
+- vehicle_attitude: q (w, x, y, z; FRD body -> NED) -> ZYX Euler (interpolated as quaternions).
+- vehicle_angular_velocity: xyz (FRD rad/s) and xyz_derivative (FRD rad/s^2). Its sample times are the
+  default timeline (50 Hz in the test log); rate_hz gives a uniform one instead.
+- rotor speeds: without a motor curve, esc_status esc[i].esc_rpm (rpm -> rad/s; esc[i].actuator_function
+  101..104 = motor 1..4; only about 4 Hz in PX4 logs, so interpolated). With a motor curve:
+  actuator_outputs through it. PX4 writes actuator_outputs as PWM microseconds on PWM outputs (the test log:
+  900 disarmed, 1000 armed idle, ~1450-1550 in hover): a channel n with <PREFIX>_FUNCn = 101..104 is motor
+  1..4, throttle = (value - <PREFIX>_MINn) / (<PREFIX>_MAXn - <PREFIX>_MINn), defaults 1000 and 2000 us
+  (PX4's) when the log has no such parameters. Values that never exceed 2 are taken as normalized [0, 1].
+  Without actuator_outputs, actuator_motors control[0..3] (normalized thrust, motor order) is used.
+- vehicle_land_detected: rows where landed is true are dropped (ground contact is not free flight).
+- targets 'truth': the estimator's own accelerations: vehicle_local_position ax ay az and
+  vehicle_angular_velocity xyz_derivative. 'sensors': sensor_combined accelerometer (FRD specific force)
+  rotated with the attitude plus g, and its gyro differentiated (Savitzky-Golay, identification.targets),
+  computed at the sensor rate and then resampled.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bridge.errors import UserError
+from identification.dataset import Dataset
+from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.targets import (
+    STANDARD_GRAVITY,
+    SensorTargetSettings,
+    euler_from_quaternions,
+    nominal_step,
+    sensor_targets,
+)
+
+RPM_TO_RAD_S = 2.0 * np.pi / 60.0
+MOTOR_FUNCTIONS = (101, 102, 103, 104)  # PX4 output functions Motor 1..4
+
+
+def _open(path: Path) -> tuple[Any, list[str]]:
+    """The parsed ULog and warnings (truncation); UserError for an empty or unreadable file."""
+    from pyulog import ULog
+    from pyulog.core import ULogException
+
+    data = path.read_bytes()
+    if not data:
+        raise UserError(f"px4 log {path} is empty")
+    sink = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(sink), contextlib.redirect_stderr(sink):
+            ulog = ULog(str(path))
+    except (
+        ULogException,
+        OSError,
+        ValueError,
+        struct.error,
+        IndexError,
+        KeyError,
+        UnicodeDecodeError,
+    ) as exc:
+        raise UserError(
+            f"px4 log {path} is corrupt or not a ULog file ({exc})",
+            hint="check the file; a ULog starts with the bytes 'ULog'",
+        ) from None
+    notes = []
+    cut = _truncated_bytes(data)
+    if cut or getattr(ulog, "file_corruption", False):
+        notes.append(
+            f"px4 log {path} is truncated or corrupt near its end: using the data it holds"
+            + (f" (last message lacks {cut} bytes)" if cut else "")
+        )
+    if not ulog.data_list:
+        raise UserError(
+            f"px4 log {path} holds no logged data (truncated in its header?)",
+            hint="the file ends before any topic data; use the complete log",
+        )
+    return ulog, notes
+
+
+def _truncated_bytes(data: bytes) -> int:
+    """How many bytes the last ULog message lacks (0 if the file ends on a message boundary)."""
+    i, n = 16, len(data)
+    while i + 3 <= n:
+        size = data[i] | (data[i + 1] << 8)
+        i += 3 + size
+    return i - n if i > n else (n - i if i < n else 0)
+
+
+class _Topics:
+    """Access to a ULog's topics by name with clear errors naming the file and what is missing."""
+
+    def __init__(self, ulog: Any, path: Path):
+        self.ulog = ulog
+        self.path = path
+        self.t0 = ulog.start_timestamp
+        self.names = sorted({d.name for d in ulog.data_list})
+
+    def has(self, name: str) -> bool:
+        return name in self.names
+
+    def get(self, name: str, why: str) -> dict[str, np.ndarray]:
+        for d in self.ulog.data_list:
+            if d.name == name and d.multi_id == 0:
+                if len(d.data["timestamp"]) == 0:
+                    break
+                return d.data
+        raise UserError(
+            f"px4 log {self.path} has no topic '{name}'; it is needed for {why}",
+            hint=f"topics in this log: {', '.join(self.names)}",
+        )
+
+    def times(self, data: dict[str, np.ndarray]) -> np.ndarray:
+        ts = data.get("timestamp_sample", data["timestamp"])
+        return (ts.astype(np.int64) - np.int64(self.t0)) * 1e-6
+
+    @staticmethod
+    def columns(data: dict[str, np.ndarray], names: list[str], topic: str, path: Path) -> np.ndarray:
+        missing = [c for c in names if c not in data]
+        if missing:
+            raise UserError(f"px4 log {path}: topic '{topic}' has no field {missing[0]!r}")
+        return np.column_stack([data[c].astype(float) for c in names])
+
+
+def _esc_rotor_stream(topics: _Topics) -> Stream:
+    data = topics.get(
+        "esc_status", "the rotor speeds (esc_rpm); or pass a motor curve to use actuator_outputs"
+    )
+    t = topics.times(data)
+    speeds = np.full((len(t), 4), np.nan)
+    count = data.get("esc_count", np.full(len(t), 8))
+    for i in range(8):
+        key = f"esc[{i}].esc_rpm"
+        if key not in data:
+            continue
+        func = data.get(f"esc[{i}].actuator_function")
+        for row in range(len(t)):
+            if i >= count[row]:
+                continue
+            f = int(func[row]) if func is not None else 0
+            motor = f - 101 if f in MOTOR_FUNCTIONS else (i if f == 0 else -1)
+            if 0 <= motor < 4:
+                speeds[row, motor] = float(data[key][row]) * RPM_TO_RAD_S
+    if not np.isfinite(speeds).any() or np.nanmax(np.abs(speeds)) == 0:
+        raise UserError(
+            f"px4 log {topics.path}: esc_status reports no rotor speeds (esc_rpm always 0)",
+            hint="pass --motor-curve (a vehicle or 'slope,offset') to use actuator_outputs",
+        )
+    return Stream("esc_status", t, speeds)
+
+
+def _output_functions(params: dict[str, Any]) -> tuple[dict[int, int], str | None]:
+    """Motor index (0..3) per actuator_outputs channel (0-based) and the parameter prefix that said so."""
+    found: dict[str, dict[int, int]] = {}
+    for key, value in params.items():
+        m = re.fullmatch(r"([A-Z0-9_]+)_FUNC(\d+)", key)
+        if m and int(value) in MOTOR_FUNCTIONS:
+            found.setdefault(m.group(1), {})[int(m.group(2)) - 1] = int(value) - 101
+    if not found:
+        return {i: i for i in range(4)}, None
+    prefix = "PWM_MAIN" if "PWM_MAIN" in found else sorted(found)[0]
+    return found[prefix], prefix
+
+
+def _actuator_throttle_stream(topics: _Topics, notes: list[str]) -> Stream:
+    params = topics.ulog.initial_parameters
+    if topics.has("actuator_outputs"):
+        data = topics.get("actuator_outputs", "the motor commands")
+        t = topics.times(data)
+        channels, prefix = _output_functions(params)
+        thr = np.full((len(t), 4), np.nan)
+        raw = {ch: data[f"output[{ch}]"].astype(float) for ch in channels if f"output[{ch}]" in data}
+        if len(raw) < 4 or sorted(channels[c] for c in raw) != [0, 1, 2, 3]:
+            raise UserError(
+                f"px4 log {topics.path}: actuator_outputs does not hold four motor channels",
+                hint="check the <PREFIX>_FUNCn parameters (101..104 = motors 1..4)",
+            )
+        pwm = max(np.nanmax(v) for v in raw.values()) > 2.0
+        for ch, values in raw.items():
+            motor = channels[ch]
+            if pwm:
+                lo = float(params.get(f"{prefix}_MIN{ch + 1}", 1000.0)) if prefix else 1000.0
+                hi = float(params.get(f"{prefix}_MAX{ch + 1}", 2000.0)) if prefix else 2000.0
+                thr[:, motor] = np.clip((values - lo) / (hi - lo), 0.0, 1.0)
+            else:
+                thr[:, motor] = np.clip(values, 0.0, 1.0)
+        how = "PWM us, (v - min)/(max - min)" if pwm else "normalized"
+        notes.append(f"rotor speeds from actuator_outputs ({how}; channels by {prefix or 'default'}_FUNCn)")
+        return Stream("actuator_outputs", t, thr)
+    data = topics.get("actuator_motors", "the motor commands (no actuator_outputs either)")
+    t = topics.times(data)
+    thr = np.clip(
+        _Topics.columns(data, [f"control[{i}]" for i in range(4)], "actuator_motors", topics.path), 0, 1
+    )
+    notes.append("rotor speeds from actuator_motors (normalized thrust commands)")
+    return Stream("actuator_motors", t, thr)
+
+
+def read_ulog_dataset(
+    path: Path,
+    targets: str = "truth",
+    motor_curve: Any = None,
+    rate_hz: float | None = None,
+    gravity: float | None = None,
+    sensor_settings: SensorTargetSettings | None = None,
+) -> Dataset:
+    """Dataset of a PX4 ULog: estimator states, rotor speeds (esc rpm or outputs via a curve), targets."""
+    ulog, notes = _open(path)
+    topics = _Topics(ulog, path)
+    lp = topics.get("vehicle_local_position", "position and velocity (and the 'truth' linear accelerations)")
+    att = topics.get("vehicle_attitude", "the attitude")
+    av = topics.get("vehicle_angular_velocity", "the body rates (and the 'truth' angular accelerations)")
+    rotor: RotorModel | None = rotor_model(motor_curve)
+
+    pos_cols = ["x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az"]
+    s_lp = Stream(
+        "vehicle_local_position",
+        topics.times(lp),
+        _Topics.columns(lp, pos_cols, "vehicle_local_position", path),
+    )
+    flags = [f for f in ("xy_valid", "z_valid", "v_xy_valid", "v_z_valid") if f in lp]
+    s_valid = Stream(
+        "vehicle_local_position validity",
+        topics.times(lp),
+        np.column_stack([lp[f].astype(float) for f in flags]) if flags else np.ones(len(lp["timestamp"])),
+        kind="hold",
+        max_gap=np.inf,
+    )
+    s_att = Stream(
+        "vehicle_attitude",
+        topics.times(att),
+        _Topics.columns(att, [f"q[{i}]" for i in range(4)], "vehicle_attitude", path),
+        kind="quaternion",
+    )
+    av_cols = [f"xyz[{i}]" for i in range(3)] + [f"xyz_derivative[{i}]" for i in range(3)]
+    s_av = Stream(
+        "vehicle_angular_velocity",
+        topics.times(av),
+        _Topics.columns(av, av_cols, "vehicle_angular_velocity", path),
+    )
+    s_rotor = _actuator_throttle_stream(topics, notes) if rotor is not None else _esc_rotor_stream(topics)
+    if rotor is None:
+        notes.append(f"rotor speeds from esc_status rpm at {s_rotor.rate_hz:.1f} Hz, interpolated")
+
+    streams = [s_lp, s_att, s_av, s_rotor]
+    s_sens = None
+    if targets == "sensors":
+        s_sens = _sensor_target_stream(
+            topics, s_att, gravity, sensor_settings or SensorTargetSettings(), notes
+        )
+        streams.append(s_sens)
+
+    timeline = uniform_timeline(streams, rate_hz) if rate_hz else s_av.t
+    filt = RowFilter(len(timeline))
+    values = {}
+    for s in [*streams, s_valid]:
+        v, ok = s.resample(timeline)
+        values[s.name] = v
+        filt.drop(f"gap in {s.name}", ~ok)
+    filt.drop("vehicle_local_position not valid", ~(values[s_valid.name] > 0.5).all(axis=1))
+    if topics.has("vehicle_land_detected"):
+        ld = topics.get("vehicle_land_detected", "ground contact")
+        s_land = Stream(
+            "vehicle_land_detected", topics.times(ld), ld["landed"].astype(float), kind="hold", max_gap=np.inf
+        )
+        landed, ok = s_land.resample(timeline)
+        filt.drop("landed (vehicle_land_detected)", (landed[:, 0] > 0.5) | ~ok)
+    else:
+        notes.append("no vehicle_land_detected: rows on the ground are not removed")
+
+    lpv, avv = values[s_lp.name], values[s_av.name]
+    euler = euler_from_quaternions(values[s_att.name])
+    xi = np.concatenate((lpv[:, :6], euler, avv[:, :3]), axis=1)
+    if rotor is not None:
+        thr = values[s_rotor.name]
+        u, settled = rotor.speeds(timeline, thr)
+        filt.drop("motor lag settling after the start or a gap", ~settled & np.isfinite(thr).all(axis=1))
+        notes.append(f"motor curve: {rotor.description}")
+    else:
+        u = values[s_rotor.name]
+    if targets == "truth":
+        tgt = np.concatenate((lpv[:, 6:9], avv[:, 3:6]), axis=1)
+    else:
+        tgt = values[s_sens.name]
+    return make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes)
+
+
+def _sensor_target_stream(
+    topics: _Topics, s_att: Stream, gravity: float | None, settings: SensorTargetSettings, notes: list[str]
+) -> Stream:
+    """Sensor-derived targets at sensor_combined's times (rotated specific force + g, gyro derivative)."""
+    sc = topics.get("sensor_combined", "the 'sensors' targets (accelerometer and gyro)")
+    ts = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
+    gyro = _Topics.columns(sc, [f"gyro_rad[{i}]" for i in range(3)], "sensor_combined", topics.path)
+    acc = _Topics.columns(sc, [f"accelerometer_m_s2[{i}]" for i in range(3)], "sensor_combined", topics.path)
+    q, ok = s_att.resample(ts)
+    euler = euler_from_quaternions(np.where(ok[:, None], q, np.nan))
+    g = STANDARD_GRAVITY if gravity is None else float(gravity)
+    st = sensor_targets(ts, acc, gyro, euler, gravity=g, settings=settings, dt=nominal_step(ts))
+    notes.append(f"sensor targets (g = {g:g} m/s^2): {st.describe(nominal_step(ts))}")
+    return Stream("sensor_combined", ts, st.values)

@@ -1,0 +1,406 @@
+"""Sparse regression over the physics-informed library: sequentially thresholded least squares (STLSQ).
+
+Features are scaled to unit spread; a term's contribution is |coefficient| x feature std (RMS for the
+constant) relative to the target's std. STLSQ removes the terms whose contribution is below a threshold and
+refits by least squares until the set is stable. A log-spaced sweep of the threshold, plus the
+backward-elimination path (drop the smallest contribution, refit, down to one term), gives candidates of every
+size. With loss 'absolute' each candidate's coefficients are refit for the absolute error (IRLS).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator, Sequence
+
+import numpy as np
+import scipy.linalg
+import sympy
+
+from identification.engine import Candidate, Progress, SparseSettings
+from identification.library import Feature, build_library, compile_features
+from identification.metrics import LOSSES
+from identification.metrics import loss as loss_fn
+from identification.model_file import complexity
+
+
+class _Problem:
+    """The scaled least-squares problem of one target, reduced once by QR.
+
+    With S = QR (N x p), min ||S_A x - y|| over a column subset A equals min ||R_A x - Q^T y||: every subset
+    solve afterwards is a p x |A| problem, independent of the number of samples.
+    """
+
+    def __init__(self, theta: np.ndarray, y: np.ndarray):
+        self.theta = theta
+        self.y = y
+        self.y_mean = float(np.mean(y))
+        self.y_std = float(np.std(y)) or float(np.sqrt(np.mean(y * y))) or 1.0
+        std = theta.std(axis=0)
+        rms = np.sqrt(np.mean(theta * theta, axis=0))
+        self.is_const = std <= 1e-12 * np.maximum(rms, 1e-300)
+        size = np.where(self.is_const, rms, std)
+        self.usable = size > 0
+        self.size = np.where(self.usable, size, 1.0)
+        self.mean = theta.mean(axis=0)
+        scaled = theta / self.size
+        self.scaled = scaled
+        self._r_u, self._z_u = self._reduce(scaled, y)
+        self._y2 = float(y @ y)
+        self._y_c2 = float(((y - self.y_mean) ** 2).sum())
+        consts = np.flatnonzero(self.is_const & self.usable)
+        self.const_col = int(consts[0]) if consts.size == 1 else None
+        if self.const_col is not None:
+            # centred columns: far better conditioned when features have large means (f1 ~ 1e6)
+            centred = scaled - scaled.mean(axis=0)
+            centred[:, self.const_col] = 0.0
+            self._r_c, self._z_c = self._reduce(centred, y - self.y_mean)
+
+    @staticmethod
+    def _reduce(a: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q, r = np.linalg.qr(a, mode="reduced")
+        return r, q.T @ y
+
+    def solve(self, active: np.ndarray) -> np.ndarray:
+        """Least-squares coefficients (original units) on the active columns; zeros elsewhere."""
+        coef = np.zeros(self.theta.shape[1])
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            return coef
+        c0 = self.const_col
+        if c0 is not None and active[c0]:
+            others = idx[idx != c0]
+            if others.size:
+                sol = np.linalg.lstsq(self._r_c[:, others], self._z_c, rcond=None)[0]
+                coef[others] = sol / self.size[others]
+            coef[c0] = (self.y_mean - float(self.mean[others] @ coef[others])) / self.mean[c0]
+            return coef
+        sol = np.linalg.lstsq(self._r_u[:, idx], self._z_u, rcond=None)[0]
+        coef[idx] = sol / self.size[idx]
+        return coef
+
+    def rss_reduced(self, active: np.ndarray) -> float:
+        """Residual sum of squares of the least-squares fit on the active columns, up to a constant.
+
+        The constant differs between fits with and without the constant column, so compare like with like.
+        """
+        idx = np.flatnonzero(active)
+        c0 = self.const_col
+        if c0 is not None and active[c0]:
+            others = idx[idx != c0]
+            r, z = self._r_c[:, others], self._z_c
+            offset = float(self._y_c2 - z @ z)
+        else:
+            r, z = self._r_u[:, idx], self._z_u
+            offset = float(self._y2 - z @ z)
+        if r.shape[1] == 0:
+            return float(z @ z) + offset
+        x = np.linalg.lstsq(r, z, rcond=None)[0]
+        d = z - r @ x
+        return float(d @ d) + offset
+
+    def rss(self, idx: np.ndarray) -> float:
+        """Residual sum of squares of the least-squares fit on columns idx (uncentred problem)."""
+        z = self._z_u
+        if idx.size == 0:
+            return self._y2
+        q = np.linalg.qr(self._r_u[:, idx], mode="reduced")[0]
+        resid = z - q @ (q.T @ z)
+        return float(resid @ resid) + self._y2 - float(z @ z)
+
+    def removal_costs(self, idx: np.ndarray) -> np.ndarray:
+        """For each column of idx, how much the RSS rises without it: x_j^2 / [(M^T M)^-1]_jj, vectorised."""
+        m = self._r_u[:, idx]
+        q, r = np.linalg.qr(m, mode="reduced")
+        diag = np.abs(np.diag(r))
+        if diag.size == 0 or diag.min() <= 1e-10 * diag.max():  # dependent columns: the slow, exact way
+            base = self.rss(idx)
+            return np.array([self.rss(np.delete(idx, k)) - base for k in range(idx.size)])
+        x = scipy.linalg.solve_triangular(r, q.T @ self._z_u)
+        rinv = scipy.linalg.solve_triangular(r, np.eye(idx.size))
+        return x * x / np.sum(rinv * rinv, axis=1)
+
+    def addition_gains(self, idx: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+        """For each candidate column, how much the RSS falls when it joins idx, vectorised."""
+        z = self._z_u
+        cols = self._r_u[:, candidates]
+        if idx.size:
+            q = np.linalg.qr(self._r_u[:, idx], mode="reduced")[0]
+            resid = z - q @ (q.T @ z)
+            cols = cols - q @ (q.T @ cols)
+        else:
+            resid = z
+        den = np.sum(cols * cols, axis=0)
+        num = (resid @ cols) ** 2
+        scale = np.sum(self._r_u[:, candidates] ** 2, axis=0)
+        return np.where(den > 1e-12 * np.maximum(scale, 1e-300), num / np.where(den > 0, den, 1.0), 0.0)
+
+    def contribution(self, coef: np.ndarray) -> np.ndarray:
+        """Each term's size relative to the target's spread."""
+        return np.abs(coef) * self.size / self.y_std
+
+    def l1_refit(self, active: np.ndarray, coef: np.ndarray, iterations: int) -> np.ndarray:
+        """Refit the active coefficients for the least absolute error (IRLS); keeps LS if not better."""
+        idx = np.flatnonzero(active)
+        if idx.size == 0 or iterations <= 0:
+            return coef
+        a = self.scaled[:, idx]
+        x = coef[idx] * self.size[idx]
+        r = self.y - a @ x
+        best_x, best_mae = x, float(np.mean(np.abs(r)))
+        if best_mae <= 1e-9 * self.y_std:
+            return coef  # exact already: nothing for IRLS to gain
+        eps = max(1e-3 * float(np.median(np.abs(r))), 1e-12 * self.y_std)
+        for _ in range(iterations):
+            w = 1.0 / np.maximum(np.abs(r), eps)
+            x_new = _weighted_solve(a, self.y, w)
+            r = self.y - a @ x_new
+            mae = float(np.mean(np.abs(r)))
+            if mae < best_mae:
+                best_x, best_mae, improvement = x_new, mae, best_mae - mae
+                if improvement < 1e-3 * best_mae:
+                    break
+            else:
+                break
+        out = np.zeros_like(coef)
+        out[idx] = best_x / self.size[idx]
+        return out
+
+
+def _weighted_solve(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """argmin sum w (y - a x)^2: normal equations (k x k, fast) when well conditioned, else least squares."""
+    aw = a * w[:, None]
+    gram = aw.T @ a
+    d = np.sqrt(np.clip(np.diag(gram), 1e-300, None))
+    g = gram / np.outer(d, d)  # unit diagonal: the condition number is the columns', not their scales'
+    if np.linalg.cond(g) < 1e8:
+        return np.linalg.solve(g, (aw.T @ y) / d) / d
+    sw = np.sqrt(w)
+    return np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)[0]
+
+
+def stlsq(problem: _Problem, threshold: float, active: np.ndarray, max_iterations: int) -> np.ndarray:
+    """STLSQ from `active` at one contribution threshold -> the final active set."""
+    active = active.copy()
+    for _ in range(max_iterations):
+        coef = problem.solve(active)
+        keep = active & (problem.contribution(coef) >= threshold)
+        if np.array_equal(keep, active) or not keep.any():
+            return keep if keep.any() else active
+        active = keep
+    return active
+
+
+def backward_path(problem: _Problem, active: np.ndarray) -> list[np.ndarray]:
+    """Active sets from `active` down to one term, each time dropping the term whose removal raises the
+    residual sum of squares least (of two near-collinear terms one goes early, not both kept large)."""
+    out = []
+    idx = np.flatnonzero(active)
+    while idx.size:
+        current = np.zeros_like(active)
+        current[idx] = True
+        out.append(current)
+        if idx.size == 1:
+            break
+        idx = np.delete(idx, int(np.argmin(problem.removal_costs(idx))))
+    return out
+
+
+def forward_path(
+    problem: _Problem, usable: np.ndarray, max_terms: int, prune: float = 1e-3
+) -> list[np.ndarray]:
+    """Forward selection with pruning: add the term that lowers the residual most, then drop every earlier
+    term whose removal raises the residual sum of squares by less than `prune` of it (a term made redundant
+    by a better one, e.g. v|v| once the body-drag terms are in); one active set per step."""
+    out = []
+    idx = np.zeros(0, dtype=int)
+    for _ in range(min(max_terms, int(usable.sum()))):
+        pool = np.flatnonzero(usable & ~np.isin(np.arange(usable.size), idx))
+        if pool.size == 0:
+            break
+        gains = problem.addition_gains(idx, pool)
+        if not np.any(gains > 0):
+            break
+        new = int(pool[int(np.argmax(gains))])
+        idx = np.append(idx, new)
+        while idx.size > 1:
+            costs = problem.removal_costs(idx)
+            costs[idx == new] = np.inf
+            k = int(np.argmin(costs))
+            if costs[k] > prune * max(problem.rss(idx), 1e-300):
+                break
+            idx = np.delete(idx, k)
+        current = np.zeros_like(usable)
+        current[idx] = True
+        out.append(current)
+    return out
+
+
+def simpler_swaps(
+    active: np.ndarray, usable: np.ndarray, groups: Sequence[str], nodes: Sequence[int]
+) -> list[np.ndarray]:
+    """Each set with one term replaced by a simpler term of the same group (wz for wz*wz, say).
+
+    Where the data cannot tell two terms apart by the training residual (a yaw rate that never changes
+    sign makes wz and wz*wz alike), the simpler one gets a chance on the held-out data.
+    """
+    out = []
+    for i in np.flatnonzero(active):
+        for j in np.flatnonzero(usable & ~active):
+            if groups[j] == groups[i] and nodes[j] < nodes[i]:
+                swapped = active.copy()
+                swapped[i] = False
+                swapped[j] = True
+                out.append(swapped)
+    return out
+
+
+def sparse_active_sets(
+    problem: _Problem,
+    settings: SparseSettings,
+    progress: Progress | None = None,
+    groups: Sequence[str] | None = None,
+    nodes: Sequence[int] | None = None,
+) -> list:
+    """Unique active sets from the threshold sweep, the backward and the forward paths (and simpler swaps)."""
+    start = problem.usable.copy()
+    sets: dict[bytes, np.ndarray] = {}
+    thresholds = np.geomspace(settings.threshold_min, settings.threshold_max, max(settings.thresholds, 1))
+    for i, thr in enumerate(thresholds):
+        a = stlsq(problem, float(thr), start, settings.max_iterations)
+        sets.setdefault(a.tobytes(), a)
+        if progress:
+            progress(0.5 * (i + 1) / len(thresholds), f"threshold {thr:.1e}")
+    if settings.backward:
+        for a in backward_path(problem, start):
+            sets.setdefault(a.tobytes(), a)
+    if settings.forward_terms:
+        for a in forward_path(problem, start, settings.forward_terms):
+            sets.setdefault(a.tobytes(), a)
+            if groups is not None and nodes is not None and np.count_nonzero(a) <= settings.swap_max_terms:
+                for b in simpler_swaps(a, start, groups, nodes):
+                    sets.setdefault(b.tobytes(), b)
+    return list(sets.values())
+
+
+def _term(coef: float, feature: sympy.Expr) -> sympy.Expr:
+    c = sympy.Float(float(coef))
+    if feature == 1:
+        return c
+    args = feature.args if isinstance(feature, sympy.Mul) else (feature,)
+    return sympy.Mul(c, *args, evaluate=False)  # unevaluated: keeps c*(u1**2 + ...) as written
+
+
+def sparse_expression(features: Sequence[Feature], coef: np.ndarray) -> sympy.Expr:
+    """sum of coefficient x feature over the nonzero coefficients, as written (unevaluated)."""
+    terms = [_term(c, features[j].expression) for j, c in enumerate(coef) if c != 0.0]
+    if not terms:
+        return sympy.Integer(0)
+    return terms[0] if len(terms) == 1 else sympy.Add(*terms, evaluate=False)
+
+
+@contextlib.contextmanager
+def _single_threaded_blas() -> Iterator[None]:
+    """Small problems: BLAS threads only contend (measured 3-10x slower on 2 busy cores)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: installed with scikit-learn, which pyoperon needs
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+class SparseEngine:
+    """STLSQ over the candidate library (identification.library): fast, exact on library structures."""
+
+    name = "sparse"
+
+    def __init__(self, settings: SparseSettings | None = None):
+        self.settings = settings or SparseSettings()
+        self.features = build_library(self.settings.groups)
+        self._nodes = [complexity(f.expression) for f in self.features]
+        self.timings: dict[str, float] = {}
+        self._cache: list[tuple[np.ndarray, np.ndarray]] = []
+        self._compiled: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def _complexity(self, idx: np.ndarray) -> int:
+        """complexity() of sparse_expression() without walking the tree."""
+        total = 0
+        for j in idx:
+            feature = self.features[j].expression
+            if feature == 1:
+                total += 1
+            elif isinstance(feature, sympy.Mul):
+                total += self._nodes[j] + 1
+            else:
+                total += self._nodes[j] + 2
+        return total + (1 if len(idx) > 1 else 0)
+
+    def matrix(self, X: np.ndarray) -> np.ndarray:
+        """The feature matrix of X (N,16), cached for the last few arrays seen."""
+        for key, theta in self._cache:
+            if key is X:
+                return theta
+        if self._compiled is None:
+            self._compiled = compile_features(self.features)
+        theta = self._compiled(X)
+        self._cache = [(X, theta), *self._cache[:3]]
+        return theta
+
+    def fit(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        target: str,
+        budget_s: float,
+        seed: int,
+        loss: str = "absolute",
+        progress: Progress | None = None,
+        holdout: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> list[Candidate]:
+        """Candidates of every size for one target (deterministic: the seed is unused)."""
+        if loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}")
+        start = time.perf_counter()
+        X = np.asarray(X, dtype=float)
+        y = np.asarray(y, dtype=float)
+        with _single_threaded_blas():
+            return self._fit(X, y, budget_s, loss, progress, start)
+
+    def _fit(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        budget_s: float,
+        loss: str,
+        progress: Progress | None,
+        start: float,
+    ) -> list[Candidate]:
+        theta = self.matrix(X)
+        problem = _Problem(theta, y)
+        sets = sparse_active_sets(
+            problem, self.settings, progress, [f.group for f in self.features], self._nodes
+        )
+        candidates: list[Candidate] = []
+        for i, active in enumerate(sets):
+            coef = problem.solve(active)
+            if loss == "absolute" and np.count_nonzero(active) <= self.settings.irls_max_terms:
+                coef = problem.l1_refit(active, coef, self.settings.irls_iterations)
+            expr = sparse_expression(self.features, coef)
+            train = loss_fn(y, theta @ coef, loss)
+            idx = np.flatnonzero(coef)
+            cand = Candidate(
+                expression=expr,
+                complexity=self._complexity(idx),
+                train_loss=train,
+                engine=self.name,
+                predict=lambda X_, idx=idx, c=coef[idx]: self.matrix(X_)[:, idx] @ c,
+            )
+            candidates.append(cand)
+            if progress:
+                progress(0.5 + 0.5 * (i + 1) / len(sets), f"{len(candidates)} candidates")
+            if time.perf_counter() - start > budget_s and candidates:
+                break
+        self.timings = {"sparse": time.perf_counter() - start}
+        return candidates

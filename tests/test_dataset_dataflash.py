@@ -1,0 +1,122 @@
+"""Datasets from ArduPilot DataFlash logs: synthetic .bin files in the real binary format (written by
+tests/dataflash_fixture.py from a flight of the SITL's dynamics) parsed by pymavlink's DFReader."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from dataflash_fixture import fly_synthetic, write_flight
+
+from bridge.errors import UserError
+from identification.dataset import load_dataset
+
+T0 = 5.0  # s, TimeUS of the first sample in the synthetic logs
+CHANNELS = (3, 1, 4, 2)  # output channel of motors 1..4: not the identity, so the mapping is exercised
+
+
+def r2(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return 1.0 - ((estimate - truth) ** 2).sum(0) / ((truth - truth.mean(0)) ** 2).sum(0)
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return fly_synthetic(duration=3.0, seed=2)
+
+
+@pytest.fixture(scope="module")
+def binlog(flight, tmp_path_factory):
+    return write_flight(
+        tmp_path_factory.mktemp("df") / "copter.bin", flight, channel_of_motor=CHANNELS, esc_every=5
+    )
+
+
+def truth_rows(flight, ds):
+    k = np.round((ds.t - T0) / 0.004).astype(int)
+    return flight.xi[k], flight.u[k], flight.accel[k]
+
+
+def test_states_in_si_units_and_rad(flight, binlog):
+    ds = load_dataset(binlog)
+    assert ds.format == "dataflash" and len(ds) > 600
+    xi, _, _ = truth_rows(flight, ds)
+    # ATT degrees -> rad (yaw logged 0..360, wrapped back), RATE deg/s -> rad/s, XKF1 core 0 (not core 1)
+    assert np.abs(ds.xi[:, 6:9] - xi[:, 6:9]).max() < 1e-5
+    assert np.abs(ds.xi[:, 9:12] - xi[:, 9:12]).max() < 1e-4
+    assert np.abs(ds.xi[:, 0:6] - xi[:, 0:6]).max() < 0.01  # XKF1 at 25 Hz, interpolated
+    assert np.abs(ds.xi[:, 8]).max() <= np.pi
+
+
+def test_esc_instances_map_to_motors_by_servo_function(flight, binlog):
+    ds = load_dataset(binlog)
+    _, u, _ = truth_rows(flight, ds)
+    # ESC at 50 Hz interpolated: each u_i follows its own motor, not another one
+    for i in range(4):
+        errors = [np.abs(ds.u[:, i] - u[:, j]).mean() for j in range(4)]
+        assert int(np.argmin(errors)) == i and errors[i] < 3.0
+
+
+def test_rcou_through_the_motor_curve(flight, binlog):
+    ds = load_dataset(binlog, motor_curve="fang-chen-buaa")
+    _, u, _ = truth_rows(flight, ds)
+    # PWM (1 us steps) -> throttle -> the vehicle's curve and motor lag: within ~1 rad/s of the true speeds
+    assert np.abs(ds.u - u).max() < 1.5
+    assert ds.drop_reasons.get("motor lag settling after the start or a gap", 0) > 0
+
+
+def test_sensor_targets_match_the_dynamics(flight, binlog):
+    ds = load_dataset(binlog, targets="sensors", gravity=9.8)
+    _, _, acc = truth_rows(flight, ds)
+    fit = r2(ds.targets, acc)
+    assert (fit > 0.999).all(), fit
+
+
+def test_truth_targets_from_the_log_states(flight, binlog):
+    ds = load_dataset(binlog, targets="truth")
+    _, _, acc = truth_rows(flight, ds)
+    fit = r2(ds.targets, acc)
+    # body rates at 250 Hz give the angular accelerations closely; a 25 Hz EKF velocity only the slow part
+    assert (fit[3:] > 0.999).all(), fit
+    assert (fit[:3] > 0.99).all(), fit
+
+
+def test_position_from_pos_when_there_is_no_ekf(flight, tmp_path):
+    path = write_flight(tmp_path / "no_ekf.bin", flight, with_xkf1=False)
+    ds = load_dataset(path)
+    xi, _, _ = truth_rows(flight, ds)
+    assert any("no XKF1" in w for w in ds.warnings)
+    # local NED from the first fix: displacements match the true ones (lat/lon in 1e-7 deg: ~1 cm)
+    assert np.abs((ds.xi[:, 0:3] - ds.xi[0, 0:3]) - (xi[:, 0:3] - xi[0, 0:3])).max() < 0.05
+    # velocity differentiated from 25 Hz fixes quantized to 1e-7 deg (~1 cm): a few cm/s RMS
+    assert np.sqrt(np.mean((ds.xi[:, 3:6] - xi[:, 3:6]) ** 2)) < 0.05
+
+
+def test_missing_messages_are_named(flight, tmp_path):
+    no_att = write_flight(tmp_path / "no_att.bin", flight, with_att=False)
+    with pytest.raises(UserError, match="no_att.bin has no ATT messages; they are needed for the attitude"):
+        load_dataset(no_att)
+    no_esc = write_flight(tmp_path / "no_esc.bin", flight, with_esc=False)
+    with pytest.raises(UserError, match="no_esc.bin has no ESC messages") as info:
+        load_dataset(no_esc)
+    assert "motor curve" in str(info.value)
+
+
+def test_truncated_corrupt_and_empty_logs(binlog, tmp_path):
+    data = binlog.read_bytes()
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes(data[: int(len(data) * 0.7) + 5])
+    ds = load_dataset(cut)
+    assert any("truncated" in w for w in ds.warnings)
+    assert ds.t[-1] < T0 + 0.75 * 3.0
+    empty = tmp_path / "empty.bin"
+    empty.write_bytes(b"")
+    with pytest.raises(UserError, match="empty.bin is empty"):
+        load_dataset(empty)
+    garbage = tmp_path / "garbage.bin"
+    garbage.write_bytes(np.random.default_rng(3).integers(0, 160, 3000, dtype=np.uint8).tobytes())
+    with pytest.raises(UserError, match="garbage.bin is not an ArduPilot DataFlash log"):
+        load_dataset(garbage)
+    no_data = tmp_path / "formats_only.bin"
+    first_imu = data.index(b"\xa3\x95\x83")  # IMU is the third message type the writer defines
+    no_data.write_bytes(data[:first_imu])  # FMT, MSG and PARM records only
+    with pytest.raises(UserError, match="formats_only.bin has no ATT messages"):
+        load_dataset(no_data)

@@ -1,0 +1,221 @@
+"""End to end: `quadsr sitl` and `quadsr excite` as separate processes over real UDP; the .tlog each flight
+leaves is read back with load_dataset and checked against the physics and the profile's limits."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import REPO, SitlProcess
+
+from bridge.vehicle import load_vehicle
+from identification.dataset import load_dataset
+from identification.excitation import load_profile
+
+pytestmark = pytest.mark.e2e
+
+
+def excite(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "quadsr.cli", "excite", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+    )
+
+
+def physics_targets(ds, ground: str) -> np.ndarray:
+    from sitl.dynamics import Quadrotor
+
+    quad = Quadrotor(load_vehicle("fang-chen-buaa").with_overrides(ground=ground))
+    out = np.empty((len(ds), 6))
+    for i, (x, u) in enumerate(zip(ds.xi, ds.u, strict=True)):
+        quad.reset(
+            position=x[0:3], yaw=x[8], rotor_speeds=u, velocity=x[3:6], rates=x[9:12], roll=x[6], pitch=x[7]
+        )
+        out[i, :3] = quad.acceleration_earth()
+        out[i, 3:] = quad.angular_acceleration()
+    return out
+
+
+def r2(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    return 1.0 - ((estimate - truth) ** 2).sum(0) / ((truth - truth.mean(0)) ** 2).sum(0)
+
+
+@pytest.fixture(scope="module")
+def sitl_at_altitude():
+    sitl = SitlProcess(
+        [
+            "--hil",
+            "udp:127.0.0.1:0",
+            "--no-gcs",
+            "--ground",
+            "none",
+            "--initial-position",
+            "0,0,-200",
+            "--sensors",
+            "ideal",
+            "--seed",
+            "7",
+            "--status-interval",
+            "0",
+        ]
+    )
+    yield sitl
+    sitl.stop()
+
+
+@pytest.fixture(scope="module")
+def sitl_on_ground():
+    sitl = SitlProcess(
+        [
+            "--hil",
+            "udp:127.0.0.1:0",
+            "--no-gcs",
+            "--sensors",
+            "ideal",
+            "--seed",
+            "8",
+            "--status-interval",
+            "0",
+        ]
+    )
+    yield sitl
+    sitl.stop()
+
+
+def test_closed_loop_refuses_a_start_in_the_air(sitl_at_altitude, tmp_path):
+    run = excite(
+        "--profile",
+        "closed-loop",
+        "--hil",
+        sitl_at_altitude.hil,
+        "--out",
+        str(tmp_path / "x.tlog"),
+        "--no-progress",
+    )
+    assert run.returncode == 2 and "not resting on the ground" in run.stderr
+
+
+def test_paper_profiles_fly_open_loop_from_altitude(sitl_at_altitude, tmp_path):
+    train = tmp_path / "train.tlog"
+    run = excite(
+        "--profile",
+        "paper-train",
+        "--hil",
+        sitl_at_altitude.hil,
+        "--duration",
+        "2",
+        "--seed",
+        "11",
+        "--out",
+        str(train),
+    )
+    assert run.returncode == 0, run.stderr
+    assert "500 steps, 2.000 s simulated" in run.stdout and "final state" in run.stdout
+    assert "excite paper-train" in run.stderr and "100%" in run.stderr  # the progress bar, on stderr
+    ds = load_dataset(train)
+    assert len(ds) == 501 - 4
+    fit = r2(ds.targets, physics_targets(ds, "none"))
+    assert (fit > 0.9999).all(), fit
+    # the rotor speeds are the SITL's true (lagged) speeds, spread over the groups' ranges
+    assert ds.u.max() > 800.0 and ds.u.min() < 50.0
+
+    val = tmp_path / "val.tlog"
+    run = excite(
+        "--profile",
+        "paper-validate",
+        "--hil",
+        sitl_at_altitude.hil,
+        "--duration",
+        "2",
+        "--out",
+        str(val),
+        "--no-progress",
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stderr == ""
+    ds = load_dataset(val)
+    assert (r2(ds.targets, physics_targets(ds, "none")) > 0.9999).all()
+    # the true speeds are the paper's sinusoids through the motor lag (Tm = 0.02 s, command held per step)
+    t = ds.t - ds.t[0] + 0.008  # rows start 2 steps after the flight's first step
+    decay = math.exp(-0.004 / 0.02)
+    for i, p in enumerate((0.0, math.pi / 4, math.pi / 3, math.pi / 6)):
+        command = 300.0 + 300.0 * np.sin(10.0 * t + p)
+        lagged = np.empty_like(command)
+        lagged[0] = ds.u[0, i]
+        for k in range(1, len(t)):
+            lagged[k] = command[k - 1] + (lagged[k - 1] - command[k - 1]) * decay
+        assert np.abs(ds.u[:, i] - lagged).max() < 0.5
+
+
+def test_open_loop_profile_refuses_a_vehicle_on_the_ground(sitl_on_ground, tmp_path):
+    run = excite(
+        "--profile",
+        "paper-validate",
+        "--hil",
+        sitl_on_ground.hil,
+        "--out",
+        str(tmp_path / "x.tlog"),
+        "--no-progress",
+    )
+    assert run.returncode == 2
+    assert (
+        "not in the air above the ground" in run.stderr
+        and "--ground none --initial-position 0,0,-200" in run.stderr
+    )
+    assert "Traceback" not in run.stderr
+    assert not (tmp_path / "x.tlog").exists()  # nothing flown, no log left behind
+
+
+def test_closed_loop_takes_off_and_holds_its_limits(sitl_on_ground, tmp_path):
+    prof = load_profile("closed-loop")
+    out = tmp_path / "closed.tlog"
+    run = excite(
+        "--profile",
+        "closed-loop",
+        "--hil",
+        sitl_on_ground.hil,
+        "--duration",
+        "9",
+        "--seed",
+        "2",
+        "--out",
+        str(out),
+        "--no-progress",
+    )
+    assert run.returncode == 0, run.stderr
+    assert "excitation backed off" in run.stdout
+    ds = load_dataset(out)
+    assert ds.drop_reasons.get("resting on the ground", 0) > 0  # it started on the ground
+    fit = r2(ds.targets, physics_targets(ds, "plane"))
+    assert (fit > 0.9999).all(), fit
+    exciting = ds.t >= prof.excitation_start
+    assert exciting.sum() > 1000
+    x = ds.xi[exciting]
+    assert np.abs(x[:, :2]).max() < prof.box_half_width
+    lo, hi = prof.box_altitude
+    assert lo < (-x[:, 2]).min() and (-x[:, 2]).max() < hi
+    tilt = np.degrees(np.arccos(np.cos(ds.xi[:, 6]) * np.cos(ds.xi[:, 7])))
+    assert tilt.max() < prof.tilt_limit
+    # excited: each rotor's speed jumps by the PRBS amplitude (through the lag) well beyond the hover trim
+    assert (np.std(ds.u[exciting], axis=0) > 30.0).all()
+
+
+def test_user_mistakes_exit_2_without_a_traceback(tmp_path):
+    for args, message in (
+        (["--profile", "wobble"], "excitation profile 'wobble': not found"),
+        (["--profile", "paper-train", "--duration", "-1"], "--duration must be a positive"),
+        (["--profile", "closed-loop", "--duration", "3"], "leaves no excitation"),
+        (
+            ["--profile", "paper-train", "--vehicle", "no-such-vehicle"],
+            "vehicle file no-such-vehicle: not found",
+        ),
+    ):
+        run = excite(*args, "--out", str(tmp_path / "x.tlog"), "--hil", "udp:127.0.0.1:9", "--no-progress")
+        assert run.returncode == 2, (args, run.stderr)
+        assert message in run.stderr and "Traceback" not in run.stderr, run.stderr
