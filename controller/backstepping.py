@@ -1,0 +1,228 @@
+"""The paper's controller as a plug-in: PI outer loop (x, y) and backstepping inner loop (z, phi, theta, psi).
+
+Inner loop (Section III-B): with s = (z, phi, theta, psi, z', phi', theta', psi'), e_i = s_id - s_i and
+delta_i = s_id' + c_i e_i - s_{i+4}, the law solves
+
+    gamma_{i+4}(s, f) = e_i + s_id'' + c_i (s_id' - s_{i+4}) + c_{i+4} delta_i        i = 1..4
+
+for f = (f1..f4), which gives W_i' = -c_i e_i^2 - c_{i+4} delta_i^2 for W_i = (e_i^2 + delta_i^2)/2.
+s_1d = z_d, s_4d = psi_d come from the reference; s_2d = phi_d, s_3d = theta_d from the outer loop, with
+their first and second derivatives from implicit differentiation of the outer inversion (derivative_mode
+"analytic", the default) or from a second-order command filter ("filter"). The gammas and their solve are
+derived from the model (controller.derivation); the speeds come from f through controller.allocation.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import sympy
+
+from controller.allocation import allocate
+from controller.derivation import DerivedLaw, derive_law
+from controller.gains import BacksteppingGains, validate_gains
+from controller.outer_loop import OuterLoop
+from controller.plugin import Command, Reference, VehicleState
+
+NOMINAL_DT = 0.004  # s, the HIL exchange step (250 Hz)
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def designed_gamma(c_i: float, c_i4: float, sd: float, sd1: float, sd2: float, s: float, s4: float) -> float:
+    """The paper's designed value of gamma_{i+4}: e_i + s_id'' + c_i (s_id' - s_{i+4}) + c_{i+4} delta_i."""
+    e = sd - s
+    return e + sd2 + c_i * (sd1 - s4) + c_i4 * (sd1 + c_i * e - s4)
+
+
+class BacksteppingController:
+    """Fang and Chen's PI + backstepping tracking controller, derived at start-up from a model's expressions.
+
+    `model` is an identification Model (or any object with `.expressions`) or a dict of the six target
+    expressions; `vehicle` supplies w_max (its motor curve). A model that cannot be inverted raises UserError.
+    """
+
+    name = "backstepping"
+
+    def __init__(self, model: Any, vehicle: Any = None, gains: BacksteppingGains | None = None, *,
+                 w_max: float | None = None):
+        exprs: Mapping[str, sympy.Expr] = model.expressions if hasattr(model, "expressions") else model
+        if w_max is None:
+            if vehicle is None:
+                raise ValueError("give the vehicle (for its motor curve) or w_max")
+            w_max = float(vehicle.motor_curve.max_speed)
+        self.w_max = float(w_max)
+        self.gains = gains if gains is not None else BacksteppingGains()
+        validate_gains(self.gains, "gains")
+        self.law: DerivedLaw = derive_law(exprs, self.w_max)
+        self.outer_loop = OuterLoop(self.gains, self.law.gravity)
+        c = self.gains.c_gains
+        self._c = c
+        self._kz = (1.0 + c[0] * c[4], c[0] + c[4])  # z error dynamics e'' + kz1 e' + kz0 e = 0
+        self._tilt = math.radians(self.gains.max_tilt_deg)
+        self._tilt_ground = math.radians(self.gains.ground_tilt_deg)
+        # how each outer-inversion parameter moves in time: 0 fixed, 1 position, 2 velocity, 3 yaw
+        kinds = []
+        for name in self.law.outer.param_names:
+            if name in ("x", "y", "z"):
+                kinds.append((1, "xyz".index(name)))
+            elif name in ("vx", "vy", "vz"):
+                kinds.append((2, ("vx", "vy", "vz").index(name)))
+            elif name == "psi":
+                kinds.append((3, 0))
+            else:
+                kinds.append((0, 0))
+        self._param_kinds = kinds
+        self.reset()
+
+    def describe(self) -> str:
+        """How the law was derived (one line)."""
+        return self.law.describe()
+
+    def reset(self) -> None:
+        """Clear the integrator, the command filter and the warm starts."""
+        self.outer_loop.reset()
+        law = self.law
+        self._q = [0.0, 0.0, law.hover_f[0]][: law.outer.n]
+        self._qd = [0.0] * law.outer.n
+        self._qdd = [0.0] * law.outer.n
+        self._f = list(law.hover_f)
+        self._t_prev: float | None = None
+        self._filt: list[float] | None = None  # phi_f, phi_f', theta_f, theta_f'
+
+    # ------------------------------------------------------------------------------------------------------
+    def update(self, t: float, state: VehicleState, reference: Reference) -> Command:
+        """Motor speeds [rad/s, PX4 order] in [0, w_max] for the state (NED/FRD) and reference at t [s]."""
+        law, g, c = self.law, self.gains, self._c
+        xi = np.asarray(state.xi, dtype=float).tolist()
+        u_meas = np.asarray(state.rotor_speeds, dtype=float).tolist()
+        dt = NOMINAL_DT if self._t_prev is None else max(t - self._t_prev, 0.0)
+        self._t_prev = t
+        pos, vel = xi[0:3], xi[3:6]
+        phi, theta, psi = xi[6], xi[7], xi[8]
+        rp, rv, ra = (np.asarray(v, dtype=float).tolist() for v in
+                      (reference.position, reference.velocity, reference.acceleration))
+        rj = np.asarray(reference.jerk, dtype=float).tolist()
+        rs = np.asarray(reference.snap, dtype=float).tolist()
+        on_ground = pos[2] > -g.ground_clearance
+        dphi, dtheta, dpsi = law.inner.euler_angle_rates(xi)
+
+        # z and psi channels (their designed second derivatives also feed the outer solve)
+        zd, zd1, zd2 = rp[2], rv[2], ra[2]
+        v5 = designed_gamma(c[0], c[4], zd, zd1, zd2, pos[2], vel[2])
+        e1, de1 = zd - pos[2], zd1 - vel[2]
+        k0, k1 = self._kz
+        dde1 = -(k0 * e1 + k1 * de1)
+        v5_1 = rj[2] + k0 * de1 + k1 * dde1
+        v5_2 = rs[2] + k0 * dde1 + k1 * -(k0 * de1 + k1 * dde1)
+        psid = float(reference.yaw)
+        e4 = _wrap(psid - psi)
+        v8 = designed_gamma(c[3], c[7], psi + e4, float(reference.yaw_rate),
+                            float(reference.yaw_acceleration), psi, dpsi)
+
+        # outer loop: desired acceleration, then the model inversion for phi_d, theta_d
+        cmd = self.outer_loop.update(dt, pos, vel, rp, rv, ra, rj, rs, (v5, v5_1, v5_2), on_ground)
+        u_outer = u_meas
+        if law.outer.mode == "frozen" and sum(v * v for v in u_meas) < 0.5 * law.hover_f[0]:
+            u_outer = [law.hover_speed] * 4  # spinning up on the ground: freeze at hover, not at ~0
+        # warm start: last solution moved along its own derivatives (one Newton step then usually suffices)
+        guess = [self._q[i] + (self._qd[i] + 0.5 * self._qdd[i] * dt) * dt for i in range(law.outer.n)]
+        sol = law.outer.solve(cmd.accel, xi, u_outer, guess, max_iter=g.newton_iterations,
+                              angle_limit=self._tilt + 0.2)
+        outer_ok = sol.ok and math.isfinite(sol.phi) and math.isfinite(sol.theta)
+        if outer_ok:
+            q = [sol.phi, sol.theta, sol.f1][: law.outer.n]
+        else:
+            q = list(self._q)
+        tilt_limit = self._tilt_ground if on_ground else self._tilt
+        phid, thetad = q[0], q[1]
+        tilt = math.acos(min(1.0, math.cos(phid) * math.cos(thetad)))
+        tilt_clamped = tilt > tilt_limit
+        if tilt_clamped:
+            # scale both angles so the tilt acos(cos phi cos theta) is the limit (converges in a few steps)
+            k = 1.0
+            for _ in range(6):
+                k *= tilt_limit / tilt
+                tilt = math.acos(min(1.0, math.cos(phid * k) * math.cos(thetad * k)))
+                if tilt <= tilt_limit:
+                    break
+            phid, thetad = phid * k, thetad * k
+        self._q = q
+
+        # phi_d', phi_d'', theta_d', theta_d''
+        if g.derivative_mode == "analytic":
+            d1 = d2 = None
+            if outer_ok and not tilt_clamped:
+                p1, p2 = self._param_rates(vel, cmd.accel, cmd.accel_rate, dpsi, v8)
+                r = law.outer.rates(q, xi, u_outer, cmd.accel_rate, cmd.accel_rate2, p1, p2)
+                if r is not None:
+                    d1, d2 = r
+            if d1 is None or d2 is None:
+                d1, d2 = [0.0] * law.outer.n, [0.0] * law.outer.n
+            self._qd, self._qdd = d1, d2
+            dphid, dthetad, ddphid, ddthetad = d1[0], d1[1], d2[0], d2[1]
+        else:
+            dphid, ddphid, dthetad, ddthetad = self._filter(phid, thetad, dt)
+
+        v6 = designed_gamma(c[1], c[5], phid, dphid, ddphid, phi, dphi)
+        v7 = designed_gamma(c[2], c[6], thetad, dthetad, ddthetad, theta, dtheta)
+        f, inner_ok = law.inner.solve([v5, v6, v7, v8], xi, u_meas, self._f, max_iter=g.newton_iterations)
+        if not inner_ok or not all(math.isfinite(v) for v in f):
+            f = list(self._f)
+        self._f = list(f)
+        alloc = allocate(f, self.w_max)
+        return Command(
+            rotor_speeds=alloc.speeds,
+            saturated=alloc.saturated,
+            info={
+                "phi_d": phid, "theta_d": thetad, "f1_d": q[2] if len(q) == 3 else math.nan,
+                "dphi_d": dphid, "dtheta_d": dthetad,
+                "ddphi_d": ddphid, "ddtheta_d": ddthetad, "f": f, "accel_d": cmd.accel,
+                "gamma_d": [v5, v6, v7, v8], "outer_ok": outer_ok, "inner_ok": inner_ok,
+                "limited": cmd.limited or tilt_clamped, "on_ground": on_ground,
+                "outer_iterations": sol.iterations, "integral": cmd.integral,
+                "allocation": alloc.stage,
+            },
+        )
+
+    def _param_rates(self, vel: list[float], acc: list[float], acc1: list[float], dpsi: float,
+                     ddpsi: float) -> tuple[list[float], list[float]]:
+        p1, p2 = [], []
+        for kind, i in self._param_kinds:
+            if kind == 1:
+                p1.append(vel[i])
+                p2.append(acc[i])
+            elif kind == 2:
+                p1.append(acc[i])
+                p2.append(acc1[i])
+            elif kind == 3:
+                p1.append(dpsi)
+                p2.append(ddpsi)
+            else:
+                p1.append(0.0)
+                p2.append(0.0)
+        return p1, p2
+
+    def _filter(self, phid: float, thetad: float, dt: float) -> tuple[float, float, float, float]:
+        """Critically damped 2nd-order command filter on phi_d, theta_d -> (phi', phi'', theta', theta'')."""
+        w = self.gains.filter_bandwidth
+        if self._filt is None:
+            self._filt = [phid, 0.0, thetad, 0.0]
+        out = []
+        for k, target in ((0, phid), (2, thetad)):
+            x, v = self._filt[k], self._filt[k + 1]
+            # semi-implicit Euler in substeps small against 1/w
+            n = max(1, int(math.ceil(dt * w / 0.1)))
+            h = dt / n
+            for _ in range(n):
+                acc = w * w * (target - x) - 2.0 * w * v
+                v += h * acc
+                x += h * v
+            self._filt[k], self._filt[k + 1] = x, v
+            out += [v, w * w * (target - x) - 2.0 * w * v]
+        return out[0], out[1], out[2], out[3]

@@ -1,0 +1,175 @@
+"""The backstepping controller's gains and limits: a typed, validated dataclass, loadable from YAML.
+
+Backstepping gains c1..c8 are the paper's (Section IV). The paper does not give the outer PI gains. Ours put
+both poles of the x and y error dynamics e'' + k_p e' + k_i e = 0 at s = -3.5 rad/s (k_p = 2w = 7,
+k_i = w^2 = 12.25): critically damped, so the paper's Case II step has no overshoot, and 4.6 times slower than
+the slowest inner pole (pitch, s^2 + (c3 + c7) s + 1 + c3 c7: about -16 rad/s), so the inner loop may be
+treated as instantaneous. w and the error clip were picked by a sweep in the in-process simulator (true model,
+motor lag, Case I and II from the ground, w in {2.5, 3, 3.5, 4, 5} rad/s, clip in {1.5, 2, 3} m): w = 3.5 with
+a 2 m clip has the smallest error after 4 s (under 1 mm, settled within 5 cm at 2.6 s) with the actual tilt
+inside the 35 deg limit; w = 4 settles 0.5 s sooner in Case I but tilts past the limit; w = 5 fights the inner
+loop (3 to 15 mm RMS after 5 s instead of 0.01 mm); w <= 3 or a 1.5 m clip settle later (3.0 to 3.9 s).
+
+A YAML file overrides any subset of the defaults, flat keys:
+
+    c1: 11.52        # ... c8
+    k_px: 7.0
+    k_ix: 12.25
+    max_tilt_deg: 35
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from bridge.errors import UserError
+
+PAPER_C = (11.52, 28.00, 16.63, 6.54, 8.40, 27.50, 15.54, 5.49)
+DERIVATIVE_MODES = ("analytic", "filter")
+
+
+@dataclass(frozen=True)
+class BacksteppingGains:
+    """Gains [SI] and real-vehicle limits of the PI outer loop and backstepping inner loop."""
+
+    # backstepping gains c1..c8 [1/s]: i = 1..4 for z, phi, theta, psi; c_{i+4} on the velocity error delta_i
+    c: tuple[float, ...] = PAPER_C
+    # outer PI: x'' = x_d'' + k_px e_x' + k_ix e_x [k_p 1/s, k_i 1/s^2] (same for y)
+    k_px: float = 7.0
+    k_ix: float = 12.25
+    k_py: float = 7.0
+    k_iy: float = 12.25
+    # optional integral of the position error [1/s^3] for model bias (0: the paper's law exactly)
+    k_int: float = 0.0
+    # --- real-vehicle limits
+    max_tilt_deg: float = 35.0  # deg, largest commanded roll or pitch (and tilt)
+    max_position_error: float = 2.0  # m, horizontal error fed to the k_i term is clipped to this length
+    max_integral_accel: float = 1.0  # m/s^2, anti-windup clamp of the k_int integral's contribution
+    integral_zone: float = 0.5  # m, the k_int integral only integrates within this horizontal error
+    max_climb_accel: float = 6.0  # m/s^2, largest upward acceleration asked of the outer solve
+    max_sink_fraction: float = 0.7  # share of gravity the outer solve may ask as downward acceleration
+    ground_clearance: float = 0.05  # m, below this height the vehicle counts as on the ground
+    ground_tilt_deg: float = 3.0  # deg, tilt limit while on the ground (no tipping over at take-off)
+    # --- phi_d, theta_d derivatives: "analytic" (implicit differentiation of the outer inversion through the
+    # reference's jerk and snap and the ideal error dynamics) or "filter" (a 2nd-order command filter)
+    derivative_mode: str = "analytic"
+    filter_bandwidth: float = 40.0  # rad/s, natural frequency of the command filter (critically damped)
+    newton_iterations: int = 8  # cap per control step for numeric inversions
+
+    @property
+    def c_gains(self) -> tuple[float, ...]:
+        """c1..c8 as a tuple of floats."""
+        return tuple(float(v) for v in self.c)
+
+    def replace(self, **changes: Any) -> BacksteppingGains:
+        """A validated copy with some fields changed."""
+        out = dataclasses.replace(self, **changes)
+        validate_gains(out, "gains")
+        return out
+
+
+_FLOAT_FIELDS = {
+    f.name for f in dataclasses.fields(BacksteppingGains) if f.type in ("float", float)
+}
+
+
+def validate_gains(g: BacksteppingGains, where: str) -> None:
+    """Raise UserError naming `where` and the key when a gain or limit is out of range."""
+    if len(g.c) != 8:
+        raise UserError(f"{where}: c must have 8 values c1..c8, got {len(g.c)}")
+    for i, v in enumerate(g.c, 1):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise UserError(f"{where}: c{i} must be a positive number, got {v!r}",
+                            hint="backstepping needs c_i > 0 for W' = -c_i e_i^2 - c_{i+4} delta_i^2 < 0")
+    for name in ("k_px", "k_ix", "k_py", "k_iy", "max_position_error", "filter_bandwidth", "max_climb_accel"):
+        v = getattr(g, name)
+        if not (math.isfinite(v) and v > 0):
+            raise UserError(f"{where}: {name} must be a positive number, got {v!r}")
+    for name in ("k_int", "max_integral_accel", "integral_zone", "ground_clearance", "ground_tilt_deg"):
+        v = getattr(g, name)
+        if not (math.isfinite(v) and v >= 0):
+            raise UserError(f"{where}: {name} must be a number >= 0, got {v!r}")
+    if not 0 < g.max_tilt_deg < 80:
+        raise UserError(f"{where}: max_tilt_deg must be in (0, 80) deg, got {g.max_tilt_deg!r}")
+    if not 0 < g.max_sink_fraction < 1:
+        raise UserError(f"{where}: max_sink_fraction must be in (0, 1), got {g.max_sink_fraction!r}")
+    if g.ground_tilt_deg > g.max_tilt_deg:
+        raise UserError(f"{where}: ground_tilt_deg must not exceed max_tilt_deg")
+    if g.derivative_mode not in DERIVATIVE_MODES:
+        raise UserError(f"{where}: derivative_mode must be one of {', '.join(DERIVATIVE_MODES)}, "
+                        f"got {g.derivative_mode!r}")
+    if not (isinstance(g.newton_iterations, int) and 1 <= g.newton_iterations <= 100):
+        raise UserError(f"{where}: newton_iterations must be an integer in [1, 100]")
+    # PI stability of e'' + k_p e' + k_i e + k_int (integral of e) = 0 (Routh-Hurwitz: k_p k_i > k_int)
+    for kp, ki, axis in ((g.k_px, g.k_ix, "x"), (g.k_py, g.k_iy, "y")):
+        if g.k_int >= kp * ki:
+            raise UserError(f"{where}: k_int must be below k_p{axis} * k_i{axis} = {kp * ki:g} for stability")
+
+
+def load_gains(path: str | os.PathLike[str] | None) -> BacksteppingGains:
+    """Defaults, overridden by the flat keys of a YAML file (None: the defaults); UserError on a bad file."""
+    if path is None:
+        return BacksteppingGains()
+    p = Path(path)
+    where = str(p)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise UserError(f"cannot read gains file {where}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise UserError(f"gains file {where} is not valid YAML: {exc}") from None
+    return gains_from_dict(data or {}, where)
+
+
+def gains_from_dict(data: Any, where: str = "gains") -> BacksteppingGains:
+    """Gains from a flat mapping (c1..c8, k_px, ..., limits); UserError naming `where` and the key."""
+    if not isinstance(data, dict):
+        raise UserError(f"{where}: expected a mapping of gain names to values, got {type(data).__name__}")
+    known = {f.name for f in dataclasses.fields(BacksteppingGains)} - {"c"}
+    c = list(PAPER_C)
+    changes: dict[str, Any] = {}
+    for key, value in data.items():
+        key_s = str(key)
+        if key_s in {f"c{i}" for i in range(1, 9)}:
+            c[int(key_s[1]) - 1] = _number(where, key_s, value)
+        elif key_s in _FLOAT_FIELDS:
+            changes[key_s] = _number(where, key_s, value)
+        elif key_s == "newton_iterations":
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise UserError(f"{where}: key 'newton_iterations' must be an integer, got {value!r}")
+            changes[key_s] = value
+        elif key_s == "derivative_mode":
+            changes[key_s] = str(value)
+        else:
+            raise UserError(
+                f"{where}: unknown key '{key_s}'",
+                hint=f"known keys: c1..c8, {', '.join(sorted(known))}",
+            )
+    gains = BacksteppingGains(c=tuple(c), **changes)
+    validate_gains(gains, where)
+    return gains
+
+
+def gains_to_dict(g: BacksteppingGains) -> dict[str, Any]:
+    """The flat mapping written to YAML (c1..c8 expanded)."""
+    out: dict[str, Any] = {f"c{i}": float(v) for i, v in enumerate(g.c, 1)}
+    for f in dataclasses.fields(g):
+        if f.name != "c":
+            out[f.name] = getattr(g, f.name)
+    return out
+
+
+def _number(where: str, key: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise UserError(f"{where}: key '{key}' must be a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise UserError(f"{where}: key '{key}' must be finite, got {value!r}")
+    return v

@@ -1,0 +1,122 @@
+"""The outer loop: the paper's PI law with feedforward for the desired horizontal acceleration (NED, m/s^2).
+
+    a_x = x_d'' + k_px e_x' + k_ix e_x (+ k_int * integral of e_x)        e_x = x_d - x, likewise y
+
+With a_x reached exactly (the model inversion in controller.derivation does that when the inner loop tracks
+phi_d, theta_d), the error obeys e'' + k_p e' + k_i e = 0 (the paper's Section III-A). The paper's "integral"
+term k_i e_x = k_i * integral(e_x') is the position error itself.
+
+What the paper leaves out and a real vehicle needs:
+  - the position error fed to k_i is clipped to `max_position_error` (horizontal length): the integral term's
+    anti-windup, so that Case I's reference starting 3.7 m away asks for a bounded acceleration and the
+    vehicle closes the gap at about k_i * e_max / k_p instead of overshooting a saturated PD;
+  - the optional extra integral (k_int) integrates only within `integral_zone`, never on the ground, never
+    while the command is limited (conditional integration), and its contribution is clamped;
+  - the horizontal acceleration is limited so that the tilt stays below max_tilt (tan(tilt) * (g - a_z)),
+    and below ground_tilt while the vehicle is still on the ground.
+
+Derivatives a' and a'' for the attitude feedforward come from the reference's jerk and snap plus the ideal
+closed-loop error dynamics (e'' = -(k_p e' + k_i e + k_int I)), so they need no numerical differentiation.
+When a limit is active they fall back to the reference's jerk and snap alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from controller.gains import BacksteppingGains
+
+
+@dataclass
+class OuterCommand:
+    """Desired NED acceleration [m/s^2] (x, y from the PI law, z passed in) and its two time derivatives."""
+
+    accel: list[float]
+    accel_rate: list[float]
+    accel_rate2: list[float]
+    limited: bool  # the tilt/acceleration limit or the error clip was active
+    integral: tuple[float, float]  # the k_int integrator state [m s]
+
+
+class OuterLoop:
+    """PI with feedforward for x and y: error clip, conditional-integration anti-windup, tilt limit."""
+
+    def __init__(self, gains: BacksteppingGains, gravity: float):
+        self.gains = gains
+        self.gravity = gravity  # m/s^2, from the model (its z'' at rest with motors off)
+        self._kp = (gains.k_px, gains.k_py)
+        self._ki = (gains.k_ix, gains.k_iy)
+        self._tan_tilt = math.tan(math.radians(gains.max_tilt_deg))
+        self._tan_ground = math.tan(math.radians(gains.ground_tilt_deg))
+        self.reset()
+
+    def reset(self) -> None:
+        """Zero the integrator and forget the last limit state."""
+        self._integral = [0.0, 0.0]
+        self._was_limited = False
+
+    def vertical_limits(self) -> tuple[float, float]:
+        """(most upward, most downward) vertical acceleration [m/s^2, NED] the outer solve may ask for."""
+        g = self.gains
+        return -g.max_climb_accel, g.max_sink_fraction * self.gravity
+
+    def update(self, dt: float, position: list[float], velocity: list[float], ref_pos: list[float],
+               ref_vel: list[float], ref_acc: list[float], ref_jerk: list[float], ref_snap: list[float],
+               az: tuple[float, float, float], on_ground: bool) -> OuterCommand:
+        """The desired acceleration for the position/velocity NED [m, m/s] and the reference at this step.
+
+        az = (a_z, a_z', a_z''): the vertical acceleration the inner loop's z design asks for, and its
+        derivatives [m/s^2, m/s^3, m/s^4]; clipped here to the vertical limits for the attitude solve.
+        """
+        g = self.gains
+        e = [ref_pos[0] - position[0], ref_pos[1] - position[1]]
+        ev = [ref_vel[0] - velocity[0], ref_vel[1] - velocity[1]]
+        dist = math.hypot(e[0], e[1])
+        clipped = dist > g.max_position_error
+        k = g.max_position_error / dist if clipped else 1.0
+        ec = [e[0] * k, e[1] * k]
+
+        # conditional integration (anti-windup): near the reference, airborne, last command not limited
+        if g.k_int > 0.0 and not on_ground and dist < g.integral_zone and not self._was_limited and dt > 0:
+            cap = g.max_integral_accel / g.k_int
+            for i in range(2):
+                self._integral[i] = min(max(self._integral[i] + e[i] * dt, -cap), cap)
+        if on_ground:
+            self._integral = [0.0, 0.0]
+        integ = self._integral
+
+        a = [ref_acc[i] + self._kp[i] * ev[i] + self._ki[i] * ec[i] + g.k_int * integ[i] for i in range(2)]
+        up, down = self.vertical_limits()
+        a_z = min(max(az[0], up), down)
+        a_max = (self._tan_ground if on_ground else self._tan_tilt) * (self.gravity - a_z)
+        a_h = math.hypot(a[0], a[1])
+        tilt_limited = a_h > a_max
+        if tilt_limited:
+            s = a_max / a_h
+            a = [a[0] * s, a[1] * s]
+        limited = clipped or tilt_limited or a_z != az[0]
+        self._was_limited = limited or clipped
+
+        if clipped or tilt_limited or on_ground:
+            rate = [ref_jerk[0], ref_jerk[1]]
+            rate2 = [ref_snap[0], ref_snap[1]]
+        else:
+            rate, rate2 = [0.0, 0.0], [0.0, 0.0]
+            for i in range(2):
+                kp, ki, kint = self._kp[i], self._ki[i], g.k_int
+                e2 = -(kp * ev[i] + ki * e[i] + kint * integ[i])
+                e3 = -(kp * e2 + ki * ev[i] + kint * e[i])
+                rate[i] = ref_jerk[i] + kp * e2 + ki * ev[i] + kint * e[i]
+                rate2[i] = ref_snap[i] + kp * e3 + ki * e2 + kint * ev[i]
+        if a_z != az[0]:
+            z_rate, z_rate2 = 0.0, 0.0
+        else:
+            z_rate, z_rate2 = az[1], az[2]
+        return OuterCommand(
+            accel=[a[0], a[1], a_z],
+            accel_rate=[rate[0], rate[1], z_rate],
+            accel_rate2=[rate2[0], rate2[1], z_rate2],
+            limited=limited,
+            integral=(integ[0], integ[1]),
+        )

@@ -1,0 +1,95 @@
+"""Tracking metrics on constructed signals whose figures are known in closed form."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from controller.metrics import compute_metrics, read_metrics_csv, settle_time, wrap_angle, write_metrics
+
+DT = 0.004
+
+
+def _flight(error_of_t, duration=10.0, yaw=None):
+    """Samples whose 3-D position error is error_of_t(t), split over x and z (3-4-5 triangle)."""
+    t = np.arange(int(round(duration / DT)) + 1) * DT
+    e = np.array([error_of_t(s) for s in t])
+    desired = np.column_stack((np.sin(t), np.cos(t), -0.2 * t))
+    actual = desired + np.column_stack((0.6 * e, np.zeros_like(e), -0.8 * e))
+    yaw_d = np.zeros_like(t)
+    return t, actual, desired, (yaw if yaw is not None else yaw_d), yaw_d
+
+
+def test_rms_after_5s_and_overall_rms_of_a_two_level_error():
+    t, p, pd, y, yd = _flight(lambda s: 0.3 if s < 5.0 else 0.02)
+    m = compute_metrics(t, p, pd, y, yd, np.zeros(t.size, bool), np.full(t.size, 1e-4))
+    assert m.rms_after_5s_m == pytest.approx(0.02, rel=1e-9)
+    n_before = np.count_nonzero(t < 5.0)
+    expected = math.sqrt((n_before * 0.09 + (t.size - n_before) * 0.0004) / t.size)
+    assert m.rms_m == pytest.approx(expected, rel=1e-9)
+    assert m.max_m == pytest.approx(0.3)
+    assert m.final_m == pytest.approx(0.02)
+    assert m.settle_time_s == pytest.approx(5.0)
+    assert m.samples == t.size and m.duration_s == pytest.approx(10.0)
+
+
+def test_settling_requires_staying_within_5_cm():
+    # decays below 5 cm at 2 s, one excursion to 6 cm at 3.5 s, then within 5 cm for good
+    def err(s):
+        if abs(s - 3.5) < 1e-9:
+            return 0.06
+        return 1.0 if s < 2.0 else 0.01
+
+    t, p, pd, y, yd = _flight(err)
+    m = compute_metrics(t, p, pd, y, yd, np.zeros(t.size, bool), np.full(t.size, 1e-4))
+    assert m.settle_time_s == pytest.approx(3.5 + DT)
+    # exactly at the tolerance counts as within
+    assert settle_time(np.array((0.0, 1.0, 2.0)), np.array((0.2, 0.05, 0.0))) == 1.0
+    # out at the last sample: never settled
+    assert settle_time(np.array((0.0, 1.0, 2.0)), np.array((0.0, 0.0, 0.07))) is None
+    assert settle_time(np.array((0.0, 1.0)), np.array((0.01, 0.0))) == 0.0
+
+
+def test_yaw_error_is_wrapped_and_motor_limits_and_step_times_counted():
+    t, p, pd, _, yd = _flight(lambda s: 0.0, duration=1.0)
+    yaw = np.full(t.size, math.pi - 0.05)
+    yd = np.full(t.size, -math.pi + 0.05)  # 0.1 rad apart across the +-pi seam
+    sat = np.zeros(t.size, bool)
+    sat[: t.size // 4] = True
+    steps = np.linspace(100e-6, 199e-6, t.size)
+    m = compute_metrics(t, p, pd, yaw, yd, sat, steps, controller="se3", trajectory="case2")
+    assert m.yaw_rms_rad == pytest.approx(0.1, abs=1e-9)
+    assert m.yaw_max_rad == pytest.approx(0.1, abs=1e-9)
+    assert m.motor_limit_share == pytest.approx((t.size // 4) / t.size)
+    assert m.step_median_us == pytest.approx(149.5, abs=0.2)
+    assert m.step_p99_us == pytest.approx(np.percentile(steps, 99) * 1e6)
+    assert wrap_angle(3 * math.pi) == pytest.approx(-math.pi)
+
+
+def test_short_flight_has_no_rms_after_5s_and_nan_position_is_not_completed():
+    t, p, pd, y, yd = _flight(lambda s: 0.01, duration=2.0)
+    m = compute_metrics(t, p, pd, y, yd, np.zeros(t.size, bool), np.full(t.size, 1e-4))
+    assert m.rms_after_5s_m is None and m.completed
+    p[-1, 0] = np.nan
+    m = compute_metrics(t, p, pd, y, yd, np.zeros(t.size, bool), np.full(t.size, 1e-4))
+    assert not m.completed and m.max_m == math.inf
+
+
+def test_markdown_and_csv_writers(tmp_path):
+    t, p, pd, y, yd = _flight(lambda s: 0.3 if s < 5.0 else 0.02)
+    m = compute_metrics(t, p, pd, y, yd, np.zeros(t.size, bool), np.full(t.size, 1e-4), controller="pid",
+                        trajectory="case1", tilt_rad=np.full(t.size, math.radians(10.0)))
+    md, csv_path = write_metrics(m, tmp_path)
+    text = md.read_text()
+    assert "| RMS 3-D position error after 5 s | 0.02 | m |" in text
+    assert "| time to settle within 5 cm (and stay) | 5 | s |" in text
+    row = read_metrics_csv(csv_path)
+    assert row["controller"] == "pid" and row["trajectory"] == "case1"
+    assert float(row["rms_after_5s_m"]) == pytest.approx(0.02)
+    assert float(row["max_tilt_deg"]) == pytest.approx(10.0)
+    never = compute_metrics(t, p + 1.0, pd, y, yd, np.zeros(t.size, bool), np.full(t.size, 1e-4))
+    md, csv_path = write_metrics(never, tmp_path)
+    assert "never settled" in md.read_text()
+    assert read_metrics_csv(csv_path)["settle_time_s"] == ""
