@@ -28,23 +28,22 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from identification.dataset import load_dataset  # noqa: E402
-from identification.excite import fly  # noqa: E402
 from identification.identify import identify  # noqa: E402
 from identification.model_file import TARGET_NAMES, save_model  # noqa: E402
 from identification.true_model import true_model  # noqa: E402
 from identification.validate import comparison_markdown, table_markdown, validate  # noqa: E402
-from quadsr.sitl_process import SitlProcess  # noqa: E402
+from quadsr.pipeline import GROUND_SITL, OPEN_LOOP_SITL, fly_excitation  # noqa: E402
 
-OPEN_LOOP = ["--ground", "none", "--initial-position", "0,0,-200", "--lockstep-timeout", "30"]
-CLOSED_LOOP = ["--lockstep-timeout", "30"]
+OPEN_LOOP = list(OPEN_LOOP_SITL)
+CLOSED_LOOP = list(GROUND_SITL)
 
 
 def fly_profile(profile: str, out: Path, sensors: str, sitl_args: list[str], seed: int) -> Path:
     """Start a SITL, fly one profile into out/<profile>.tlog, stop the SITL; the log's path."""
     path = out / f"{profile}.tlog"
     start = time.perf_counter()
-    with SitlProcess([*sitl_args, "--sensors", sensors], log_path=out / f"sitl-{profile}.log") as sitl:
-        summary = fly(profile, path, hil=sitl.hil, seed=seed, progress=False)
+    summary = fly_excitation(profile, path, sitl_args=[*sitl_args, "--sensors", sensors], seed=seed,
+                             log_path=out / f"sitl-{profile}.log")
     print(
         f"  flew {profile} ({sensors} sensors): {summary.steps} steps in {time.perf_counter() - start:.1f} s"
     )

@@ -21,86 +21,31 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from bridge.vehicle import load_vehicle  # noqa: E402
-from controller.companion import Companion, FlightSettings  # noqa: E402
-from controller.metrics import FlightMetrics  # noqa: E402
-from controller.registry import make_controller  # noqa: E402
-from controller.trajectories import load_trajectory  # noqa: E402
-from quadsr.sitl_process import SitlProcess  # noqa: E402
-
-CASES = ("case1", "case2")
+from quadsr.pipeline import CASES, TRUE_LABEL, TrackingRow, controller_specs, fly_tracking  # noqa: E402
+from quadsr.report import millimetres as _mm  # noqa: E402
+from quadsr.report import tracking_markdown  # noqa: E402
 
 
-@dataclass
-class Row:
-    """One flight of the table."""
-
-    label: str
-    case: str
-    state: str
-    metrics: FlightMetrics | None
-    message: str
-
-
-def fly_one(label: str, controller_name: str, model: Path | None, case: str, duration: float, out: Path,
-            vehicle_name: str, sensors: str, state: str) -> Row:
-    """Start a SITL, fly one case with one controller, stop the SITL; the flight's row."""
-    vehicle = load_vehicle(vehicle_name)
-    controller = make_controller(controller_name, model, vehicle)
-    trajectory = load_trajectory(case)
-    flight_dir = out / f"{label.replace(' ', '_').replace('(', '').replace(')', '')}_{case}_{state}"
-    # a long lockstep wait bound: a busy machine must not send the SITL into failsafe mid-measurement
-    args = ["--vehicle", vehicle_name, "--sensors", sensors, "--lockstep-timeout", "30"]
-    for _attempt in range(3):
-        with SitlProcess(args, log_path=flight_dir.with_suffix(".sitl.log")) as sitl:
-            settings = FlightSettings(hil=sitl.hil, duration=duration, state=state, progress=False,
-                                      link_timeout=30.0)
-            result = Companion(controller, trajectory, vehicle, settings).fly(flight_dir)
-        if not result.sitl_messages:
-            break
-        print(f"track_paper: {label} {case}: the SITL said {result.sitl_messages}; flying it again",
-              flush=True)
-    message = result.message or "; ".join(result.sitl_messages)
-    return Row(label, case, state, result.metrics, message)
-
-
-def _mm(v: float | None) -> str:
-    return "-" if v is None else f"{v * 1000:.2f}"
-
-
-def print_table(rows: list[Row], title: str) -> None:
+def print_table(rows: list[TrackingRow], title: str) -> None:
     """One Markdown table of the rows."""
     print(f"\n### {title}\n")
-    print("| controller | case | state | RMS [mm] | RMS after 5 s [mm] | max [mm] | final [mm] "
-          "| settle 5 cm [s] | step median [us] | step p99 [us] | motor limits | completed |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for r in rows:
-        m = r.metrics
-        if m is None:
-            print(f"| {r.label} | {r.case} | {r.state} | no data: {r.message} |")
-            continue
-        settle = "never" if m.settle_time_s is None else f"{m.settle_time_s:.2f}"
-        done = "yes" if m.completed and not m.crashed else f"NO ({r.message})"
-        print(f"| {r.label} | {r.case} | {r.state} | {_mm(m.rms_m)} | {_mm(m.rms_after_5s_m)} | "
-              f"{_mm(m.max_m)} | {_mm(m.final_m)} | {settle} | {m.step_median_us:.0f} | "
-              f"{m.step_p99_us:.0f} | {m.motor_limit_share:.1%} | {done} |")
+    print(tracking_markdown(rows, state_column=True), end="")
     sys.stdout.flush()
 
 
-def check_floors(rows: list[Row], sensor_rows: list[Row], learned: bool) -> list[str]:
+def check_floors(rows: list[TrackingRow], sensor_rows: list[TrackingRow], learned: bool) -> list[str]:
     """The issue's floors, each as a PASS/FAIL line."""
     lines = []
     by = {(r.label, r.case): r.metrics for r in rows}
     subject = "backstepping (learned)" if learned else "backstepping (true model)"
     for case in CASES:
         m = by.get((subject, case))
-        ref = by.get(("backstepping (true model)", case))
+        ref = by.get((TRUE_LABEL, case))
         if m is None or m.rms_after_5s_m is None:
             lines.append(f"FAIL {subject} {case}: no data")
             continue
@@ -147,23 +92,16 @@ def main(argv: list[str] | None = None) -> int:
     true_path = out / "true-model.yaml"
     write_true_model(args.vehicle, true_path)
     wanted = args.controllers.split(",")
-    configs = []
-    if "learned" in wanted and args.model is not None:
-        configs.append(("backstepping (learned)", "backstepping", args.model))
-    if "true" in wanted:
-        configs.append(("backstepping (true model)", "backstepping", true_path))
-    for name in ("pid", "se3"):
-        if name in wanted:
-            configs.append((name, name, None))
-    print(f"track_paper: {len(configs)} controllers x {len(CASES)} cases, {args.duration:g} s each, "
+    specs = controller_specs(args.model, true_path, wanted)
+    print(f"track_paper: {len(specs)} controllers x {len(CASES)} cases, {args.duration:g} s each, "
           f"outputs in {out}", flush=True)
-    rows = [fly_one(label, name, model, case, args.duration, out, args.vehicle, "ideal", "truth")
-            for label, name, model in configs for case in CASES]
+    rows = [fly_tracking(spec, case, duration=args.duration, out=out, vehicle=args.vehicle)
+            for spec in specs for case in CASES]
     print_table(rows, "Noise-free SITL, lockstep, true state fed back")
-    sensor_rows: list[Row] = []
+    sensor_rows: list[TrackingRow] = []
     if not args.no_sensors:
-        sensor_rows = [fly_one(label, name, model, case, args.duration, out, args.vehicle, "realistic",
-                               "sensors") for label, name, model in configs for case in CASES]
+        sensor_rows = [fly_tracking(spec, case, duration=args.duration, out=out, vehicle=args.vehicle,
+                                    sensors="realistic", state="sensors") for spec in specs for case in CASES]
         print_table(sensor_rows, "Realistic sensor noise, state estimated from HIL_SENSOR + HIL_GPS")
     lines = check_floors(rows, sensor_rows, args.model is not None)
     print("\n### Floors\n")

@@ -41,6 +41,8 @@ class SitlProcess:
     def start(self, timeout: float = 20.0) -> SitlProcess:
         """Start the SITL and wait until it says it is listening; raise UserError if it does not."""
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        if self.log_path:
+            Path(self.log_path).parent.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      text=True, env=env)
         threading.Thread(target=self._pump, daemon=True).start()
@@ -54,9 +56,10 @@ class SitlProcess:
                 continue
             if self.READY_MARK in line:
                 return self
+        code = self.proc.poll()
         self.stop()
-        raise UserError(f"the SITL did not start within {timeout:.0f} s: {' '.join(self.args)}\n"
-                        + "".join(self.output[-20:]))
+        why = f"exited with code {code}" if code is not None else f"did not start within {timeout:.0f} s"
+        raise UserError(f"the SITL {why}: {' '.join(self.args)}\n" + "".join(self.output[-20:]))
 
     def _pump(self) -> None:
         assert self.proc is not None and self.proc.stdout is not None
