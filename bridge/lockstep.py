@@ -8,6 +8,7 @@ stamped with that step's time_usec, and waits for the next step.
 from __future__ import annotations
 
 import math
+import select
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -27,6 +28,10 @@ from bridge.tlog import TlogWriter
 
 HEARTBEAT_PERIOD_S = 0.1  # while connecting
 STEP_USEC = 4000
+# The SITL re-sends an unanswered step every 0.1 s wall. A copy of our current step arriving at least this
+# long after our reply went out means the reply was lost: send it again. (A copy arriving sooner was queued
+# while we computed the reply, before the SITL could have seen it.)
+RESEND_GUARD_S = 0.05
 
 
 class LinkLost(UserError):
@@ -73,8 +78,14 @@ class LockstepClient:
             tlog=str(tlog) if isinstance(tlog, Path) else tlog,
         )
         self.assembler = ObservationAssembler()
+        # poll(0) tells whether more is queued for a third of the cost of a recvfrom that finds nothing
+        self._queued = select.poll()
+        self._queued.register(self.link.fileno(), select.POLLIN)
         self.observation: Observation | None = None
         self.steps = 0
+        self.resends = 0  # commands sent again because the SITL re-sent the step they answer
+        self._command: tuple[int, Any] | None = None  # (time_usec answered, HIL_ACTUATOR_CONTROLS message)
+        self._repeated = False  # the last frames read held a copy of the current step
         self.status_texts: list[str] = []  # STATUSTEXTs from the SITL (failsafe reasons), in order
 
     @property
@@ -111,6 +122,7 @@ class LockstepClient:
             raise ValueError(f"step() takes 4 motor throttles, got {len(throttles)}")
         clean = [_clean_throttle(v) for v in throttles]
         cmd = encode_hil_actuator_controls(current.time_usec, clean)
+        self._command = (current.time_usec, cmd)
         self.link.send([cmd])
         obs = self.wait_observation(self.timeout)
         self.steps += 1
@@ -121,15 +133,35 @@ class LockstepClient:
         return self.step([float(motor_curve.throttle_for_speed(float(w))) for w in speeds_rad_s])
 
     def wait_observation(self, timeout: float | None = None) -> Observation:
-        """Wait (up to timeout s, default the client's) for a step newer than the current one and return it.
+        """Wait (up to timeout s, default the client's) for a step newer than the current one; return the
+        newest one queued.
 
-        If the SITL ran ahead (failsafe pacing), the newest step already queued is returned.
+        Everything queued is read each time, so after a failsafe (the SITL stepping at wall-clock pace) the
+        newest step is returned, not the backlog. When the SITL re-sends the current step (our reply was
+        lost), the command that answered it is sent again.
         """
         timeout = self.timeout if timeout is None else timeout
         after = -1 if self.observation is None else self.observation.time_usec
-        deadline = time.monotonic() + timeout
+        start = time.monotonic()
+        deadline = start + timeout
+        resend_after = start + RESEND_GUARD_S
         link = self.link
+        remaining = timeout
         while True:
+            frames = link.recv_split(remaining)
+            if frames:
+                if self._queued.poll(0):
+                    frames += link.drain_split()
+                obs = self._latest(frames, after)
+                if obs is not None:
+                    self.observation = obs
+                    return obs
+                if self._repeated and self._command is not None and self._command[0] == after:
+                    now = time.monotonic()
+                    if now >= resend_after:
+                        link.send([self._command[1]])
+                        self.resends += 1
+                        resend_after = now + RESEND_GUARD_S
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise LinkLost(
@@ -137,18 +169,11 @@ class LockstepClient:
                     f"(last step t = {max(after, 0) * 1e-6:.3f} s)",
                     hint="did the SITL stop, or go into failsafe? its status line says why",
                 )
-            obs = self._latest(link.recv_split(remaining), after)
-            if obs is not None:
-                if obs.time_usec != after + STEP_USEC:
-                    # Not the step right after ours: the SITL did not wait for us; catch up to what's queued.
-                    newer = self._latest(link.drain_split(), obs.time_usec)
-                    if newer is not None:
-                        obs = newer
-                self.observation = obs
-                return obs
 
     def _latest(self, frames: list[tuple], after: int = -1) -> Observation | None:
+        """The newest step in frames newer than `after` (or None); _repeated: `after` itself came again."""
         latest = None
+        repeated = False
         for obs in self.assembler.feed_frames(frames):
             for m in obs.extras:
                 if m.get_type() == "STATUSTEXT":
@@ -156,6 +181,9 @@ class LockstepClient:
             if obs.time_usec > after:
                 latest = obs
                 after = obs.time_usec
+            elif obs.time_usec == after:
+                repeated = True
+        self._repeated = repeated
         return latest
 
     def close(self) -> None:

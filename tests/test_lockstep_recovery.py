@@ -1,0 +1,82 @@
+"""LockstepClient against the real `quadsr sitl` process: a lost reply and a failsafe backlog recover."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from bridge.lockstep import LockstepClient
+
+pytestmark = pytest.mark.e2e
+
+IDLE = [0.3] * 4  # below hover: the vehicle stays on the ground
+
+
+class DropOnce:
+    """Stands in for a UDP link's send: the next `arm()`ed datagram is lost (as UDP may lose it)."""
+
+    def __init__(self, send):
+        self._send = send
+        self.armed = False
+        self.dropped = 0
+
+    def arm(self) -> None:
+        self.armed = True
+
+    def __call__(self, msgs) -> None:
+        if self.armed:
+            self.armed = False
+            self.dropped += 1
+            return
+        self._send(msgs)
+
+
+@pytest.mark.parametrize("lost_at_step", [0, 20])
+def test_a_lost_reply_is_sent_again_when_the_sitl_resends_its_step(start_sitl, lost_at_step):
+    sitl = start_sitl("--sensors", "ideal", "--lockstep-timeout", "0.5")
+    with LockstepClient(sitl.hil, timeout=2.0) as client:
+        loss = DropOnce(client.link.send)
+        client.link.send = loss
+        obs = client.connect(10.0)
+        for _ in range(lost_at_step):
+            obs = client.step(IDLE)
+        loss.arm()
+        t0 = time.monotonic()
+        lost = obs.time_usec
+        obs = client.step(IDLE)  # its reply never leaves: the SITL re-sends step `lost` after 0.1 s
+        waited = time.monotonic() - t0
+        assert loss.dropped == 1 and client.resends == 1
+        assert obs.time_usec == lost + 4000
+        assert 0.08 < waited < 0.3  # one SITL re-send period, far below the 0.5 s failsafe bound
+        for _ in range(20):
+            previous = obs.time_usec
+            obs = client.step(IDLE)
+            assert obs.time_usec == previous + 4000
+        assert client.resends == 1 and client.status_texts == []
+    assert "FAILSAFE" not in sitl.output
+
+
+def test_after_a_failsafe_the_next_step_is_the_newest_not_the_backlog(start_sitl):
+    sitl = start_sitl("--sensors", "ideal", "--lockstep-timeout", "0.2")
+    with LockstepClient(sitl.hil, timeout=2.0) as client:
+        client.connect(10.0)
+        for _ in range(20):
+            obs = client.step(IDLE)
+        paused = obs.time_usec
+        time.sleep(0.6)  # past the 0.2 s bound: failsafe, then ~0.4 s of wall-paced steps queue up
+        first = client.step(IDLE)
+        assert client.status_texts[0] == "quadsr failsafe: no reply for 0.2 s, motors off"
+        behind = first.time_usec - paused
+        assert 0.25e6 < behind < 0.6e6  # the newest queued step (the backlog walk gave paused + 4000)
+        times = [first.time_usec]
+        t0 = time.monotonic()
+        for _ in range(100):
+            times.append(client.step(IDLE).time_usec)
+        steps = np.diff(times).tolist()
+        # The SITL may send a step or two between our command reaching it and our drain: one short catch-up.
+        assert 4000 <= steps[0] <= 12000 and set(steps[1:]) == {4000}
+        assert time.monotonic() - t0 < 0.4  # lockstep pace again, not the wall-clock pace of the failsafe
+        assert any("resumed" in t for t in client.status_texts) and client.resends == 0
+    assert sitl.output.count("FAILSAFE") == 1
