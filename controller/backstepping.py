@@ -10,6 +10,11 @@ s_1d = z_d, s_4d = psi_d come from the reference; s_2d = phi_d, s_3d = theta_d f
 their first and second derivatives from implicit differentiation of the outer inversion (derivative_mode
 "analytic", the default) or from a second-order command filter ("filter"). The gammas and their solve are
 derived from the model (controller.derivation); the speeds come from f through controller.allocation.
+
+Integral action: a ModelErrorObserver estimates, from each step's measured velocity and body-rate changes,
+what the model gets wrong (d, NED m/s^2 and FRD rad/s^2); the outer loop asks for a_x - d_x, a_y - d_y, the z
+design for gamma_5 - d_z and the attitude designs for gamma_{6..8} - R(phi, theta) d_w. With an exact model
+and motors without lag, d stays at the trapezoid rule's error over a step and this is the paper's law.
 """
 
 from __future__ import annotations
@@ -22,12 +27,127 @@ import numpy as np
 import sympy
 
 from controller.allocation import allocate
-from controller.derivation import DerivedLaw, derive_law
+from controller.derivation import XI, DerivedLaw, U, derive_law, normalise
 from controller.gains import BacksteppingGains, validate_gains
 from controller.outer_loop import OuterLoop
 from controller.plugin import Command, Reference, VehicleState
+from identification.model_file import TARGET_NAMES
 
 NOMINAL_DT = 0.004  # s, the HIL exchange step (250 Hz)
+
+
+class ModelErrorObserver:
+    """What the model gets wrong as the vehicle flies, low-passed: the controller's integral action.
+
+    Over each control step, the vehicle's velocity change (NED) and body-rate change (FRD) are compared with
+    what the model predicts for that step (its x'', y'', z'' and dwx, dwy, dwz by the trapezoid rule over the
+    step's two ends, at the measured states and the rotor speeds commanded for the step). The difference
+    d = measured - modelled goes through a first-order low-pass at `rate` (translational, kept in the body
+    frame FRD [m/s^2]) and `angular_rate` (FRD [rad/s^2]) [1/s]; the controller asks the model for
+    (design) - d, so the vehicle does what the design asks.
+
+    Why this and not an integral of the tracking error: d does not see the tracking transient. With an exact
+    model (and motors without lag) d stays at the trapezoid rule's error over a step (under 1e-3 m/s^2 in a
+    take-off) from any initial condition, so the paper's error dynamics are untouched, while a constant
+    model error is removed exactly, as an integral action would. Why the body frame: the largest
+    model error, the thrust coefficient's, is a constant body-z force that turns with the vehicle; the
+    estimate then needs no time to follow the attitude, and its NED rate (R (w x d_b)) goes into the attitude
+    feedforward. With the commanded (not the measured) rotor speeds, d also takes in what the motors do not
+    deliver at once (their lag, a throttle-curve error). Anti-windup: d is the model's error, not an
+    integral of the tracking error, so limits and saturation cannot wind it up; it is clamped to
+    +-max_accel, +-max_angular and reset while the vehicle is on the ground (the ground pushes back).
+    """
+
+    def __init__(self, expressions: Mapping[str, sympy.Expr], rate: float, angular_rate: float,
+                 max_accel: float, max_angular: float):
+        names = TARGET_NAMES if angular_rate > 0.0 else TARGET_NAMES[:3]
+        self._accel = None
+        if rate > 0.0 or angular_rate > 0.0:
+            norm = normalise(expressions)
+            self._accel = sympy.lambdify(list(XI) + list(U), [norm[n] for n in names], modules="math",
+                                         cse=True)
+        self._rates = ((rate,) * 3 + (angular_rate,) * 3)[: len(names)]
+        self._limits = ((max_accel,) * 3 + (max_angular,) * 3)[: len(names)]
+        self._dt = -1.0
+        self._gains: list[float] = []
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the estimate and the last step."""
+        self.value = [0.0] * 6  # d: body FRD translational [m/s^2], then angular [rad/s^2]
+        self._start: tuple[tuple[float, ...], list[float], list[float]] | None = None
+
+    def start_step(self, xi: list[float], u: list[float]) -> None:
+        """A step starts at state xi (airborne) with the rotor speeds u [rad/s] just commanded for it."""
+        if self._accel is None:
+            return
+        try:
+            a = self._accel(*xi, *u)
+        except (ValueError, ZeroDivisionError, OverflowError):  # outside the model's domain: skip the step
+            self._start = None
+            return
+        self._start = ((xi[3], xi[4], xi[5], xi[9], xi[10], xi[11]), a, u)
+
+    def end_step(self, dt: float, xi: list[float]) -> tuple[list[float], list[float]]:
+        """The step of dt [s] ended at state xi: update d; return (d at xi: translational NED [m/s^2], then
+        angular FRD [rad/s^2]; the NED part's rate R (w x d_b) [m/s^3])."""
+        start = self._start
+        self._start = None
+        d = self.value
+        r = None
+        if start is not None and dt > 0.0:
+            pv, pa, u = start
+            try:
+                a = self._accel(*xi, *u)
+            except (ValueError, ZeroDivisionError, OverflowError):
+                a = None
+            if a is not None:
+                if dt != self._dt:
+                    self._dt = dt
+                    self._gains = [1.0 - math.exp(-k * dt) for k in self._rates]
+                inv = 1.0 / dt
+                mx = (xi[3] - pv[0]) * inv - 0.5 * (a[0] + pa[0])
+                my = (xi[4] - pv[1]) * inv - 0.5 * (a[1] + pa[1])
+                mz = (xi[5] - pv[2]) * inv - 0.5 * (a[2] + pa[2])
+                r = rotation(xi[6], xi[7], xi[8])
+                meas = [r[0][0] * mx + r[1][0] * my + r[2][0] * mz,  # NED -> FRD: R^T
+                        r[0][1] * mx + r[1][1] * my + r[2][1] * mz,
+                        r[0][2] * mx + r[1][2] * my + r[2][2] * mz]
+                if len(a) == 6:
+                    meas += [(xi[9 + i] - pv[3 + i]) * inv - 0.5 * (a[3 + i] + pa[3 + i]) for i in range(3)]
+                for i, k in enumerate(self._gains):
+                    if k > 0.0:
+                        lim = self._limits[i]
+                        x = d[i] + k * (meas[i] - d[i])
+                        if x > lim:
+                            x = lim
+                        elif x < -lim:
+                            x = -lim
+                        elif x != x:  # NaN: the model has no value here; keep the estimate
+                            continue
+                        d[i] = x
+        if not any(d):  # off, or just off the ground
+            return [0.0] * 6, [0.0, 0.0, 0.0]
+        if r is None:
+            r = rotation(xi[6], xi[7], xi[8])
+        r0, r1, r2 = r
+        d0, d1, d2 = d[0], d[1], d[2]
+        wx, wy, wz = xi[9], xi[10], xi[11]
+        c0, c1, c2 = wy * d2 - wz * d1, wz * d0 - wx * d2, wx * d1 - wy * d0  # w x d_b
+        return ([r0[0] * d0 + r0[1] * d1 + r0[2] * d2, r1[0] * d0 + r1[1] * d1 + r1[2] * d2,
+                 r2[0] * d0 + r2[1] * d1 + r2[2] * d2, d[3], d[4], d[5]],
+                [r0[0] * c0 + r0[1] * c1 + r0[2] * c2, r1[0] * c0 + r1[1] * c1 + r1[2] * c2,
+                 r2[0] * c0 + r2[1] * c1 + r2[2] * c2])
+
+
+def rotation(phi: float, theta: float, psi: float) -> list[list[float]]:
+    """R = Rz(psi) Ry(theta) Rx(phi) (rows), body FRD to earth NED, from ZYX Euler angles [rad]."""
+    sf, cf = math.sin(phi), math.cos(phi)
+    st, ct = math.sin(theta), math.cos(theta)
+    sp, cp = math.sin(psi), math.cos(psi)
+    return [[ct * cp, sf * st * cp - cf * sp, cf * st * cp + sf * sp],
+            [ct * sp, sf * st * sp + cf * cp, cf * st * sp - sf * cp],
+            [-st, sf * ct, cf * ct]]
 
 
 def _wrap(angle: float) -> float:
@@ -61,6 +181,9 @@ class BacksteppingController:
         validate_gains(self.gains, "gains")
         self.law: DerivedLaw = derive_law(exprs, self.w_max)
         self.outer_loop = OuterLoop(self.gains, self.law.gravity)
+        g = self.gains
+        self.observer = ModelErrorObserver(exprs, g.observer_rate, g.observer_angular_rate,
+                                           g.observer_max_accel, g.observer_max_angular)
         c = self.gains.c_gains
         self._c = c
         self._kz = (1.0 + c[0] * c[4], c[0] + c[4])  # z error dynamics e'' + kz1 e' + kz0 e = 0
@@ -87,6 +210,7 @@ class BacksteppingController:
     def reset(self) -> None:
         """Clear the integrator, the command filter and the warm starts."""
         self.outer_loop.reset()
+        self.observer.reset()
         law = self.law
         self._q = [0.0, 0.0, law.hover_f[0]][: law.outer.n]
         self._qd = [0.0] * law.outer.n
@@ -111,10 +235,13 @@ class BacksteppingController:
         rs = np.asarray(reference.snap, dtype=float).tolist()
         on_ground = pos[2] > -g.ground_clearance
         dphi, dtheta, dpsi = law.inner.euler_angle_rates(xi)
+        if on_ground:
+            self.observer.reset()
+        d, d_rate = self.observer.end_step(dt, xi)
 
         # z and psi channels (their designed second derivatives also feed the outer solve)
         zd, zd1, zd2 = rp[2], rv[2], ra[2]
-        v5 = designed_gamma(c[0], c[4], zd, zd1, zd2, pos[2], vel[2])
+        v5 = designed_gamma(c[0], c[4], zd, zd1, zd2, pos[2], vel[2]) - d[2]
         e1, de1 = zd - pos[2], zd1 - vel[2]
         k0, k1 = self._kz
         dde1 = -(k0 * e1 + k1 * de1)
@@ -126,7 +253,9 @@ class BacksteppingController:
                             float(reference.yaw_acceleration), psi, dpsi)
 
         # outer loop: desired acceleration, then the model inversion for phi_d, theta_d
-        cmd = self.outer_loop.update(dt, pos, vel, rp, rv, ra, rj, rs, (v5, v5_1, v5_2), on_ground)
+        # the model is asked for the design minus its error d, so the design's derivatives lose d's rate
+        cmd = self.outer_loop.update(dt, pos, vel, rp, rv, ra, rj, rs, (v5, v5_1 - d_rate[2], v5_2),
+                                     on_ground, (d[0], d[1]), (d_rate[0], d_rate[1]))
         u_outer = u_meas
         if law.outer.mode == "frozen" and sum(v * v for v in u_meas) < 0.5 * law.hover_f[0]:
             u_outer = [law.hover_speed] * 4  # spinning up on the ground: freeze at hover, not at ~0
@@ -158,7 +287,10 @@ class BacksteppingController:
         if g.derivative_mode == "analytic":
             d1 = d2 = None
             if outer_ok and not tilt_clamped:
-                p1, p2 = self._param_rates(vel, cmd.accel, cmd.accel_rate, dpsi, v8)
+                # the velocity parameters move with the vehicle's acceleration: the request plus what the
+                # model misses (d), not the model's request alone
+                acc = [cmd.accel[i] + d[i] for i in range(3)]
+                p1, p2 = self._param_rates(vel, acc, cmd.accel_rate, dpsi, v8)
                 r = law.outer.rates(q, xi, u_outer, cmd.accel_rate, cmd.accel_rate2, p1, p2)
                 if r is not None:
                     d1, d2 = r
@@ -171,11 +303,16 @@ class BacksteppingController:
 
         v6 = designed_gamma(c[1], c[5], phid, dphid, ddphid, phi, dphi)
         v7 = designed_gamma(c[2], c[6], thetad, dthetad, ddthetad, theta, dtheta)
+        if d[3] or d[4] or d[5]:
+            ew = law.inner.euler_angle_rates(xi[:9] + d[3:6])  # R(phi, theta) d_w: d_w in Euler angles
+            v6, v7, v8 = v6 - ew[0], v7 - ew[1], v8 - ew[2]
         f, inner_ok = law.inner.solve([v5, v6, v7, v8], xi, u_meas, self._f, max_iter=g.newton_iterations)
         if not inner_ok or not all(math.isfinite(v) for v in f):
             f = list(self._f)
         self._f = list(f)
         alloc = allocate(f, self.w_max)
+        if not on_ground:
+            self.observer.start_step(xi, np.asarray(alloc.speeds, dtype=float).tolist())
         return Command(
             rotor_speeds=alloc.speeds,
             saturated=alloc.saturated,
@@ -185,7 +322,7 @@ class BacksteppingController:
                 "ddphi_d": ddphid, "ddtheta_d": ddthetad, "f": f, "accel_d": cmd.accel,
                 "gamma_d": [v5, v6, v7, v8], "outer_ok": outer_ok, "inner_ok": inner_ok,
                 "limited": cmd.limited or tilt_clamped, "on_ground": on_ground,
-                "outer_iterations": sol.iterations, "integral": cmd.integral,
+                "outer_iterations": sol.iterations, "integral": cmd.integral, "model_error": tuple(d),
                 "allocation": alloc.stage,
             },
         )

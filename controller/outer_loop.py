@@ -1,10 +1,15 @@
 """The outer loop: the paper's PI law with feedforward for the desired horizontal acceleration (NED, m/s^2).
 
-    a_x = x_d'' + k_px e_x' + k_ix e_x (+ k_int * integral of e_x)        e_x = x_d - x, likewise y
+    a_x = x_d'' + k_px e_x' + k_ix e_x - d_x (+ k_int * integral of e_x)        e_x = x_d - x, likewise y
 
 With a_x reached exactly (the model inversion in controller.derivation does that when the inner loop tracks
 phi_d, theta_d), the error obeys e'' + k_p e' + k_i e = 0 (the paper's Section III-A). The paper's "integral"
 term k_i e_x = k_i * integral(e_x') is the position error itself.
+
+d_x is the model-error observer's estimate of what the model gets wrong in x'' (ModelErrorObserver, run by
+the backstepping controller): asking the model for a_x - d_x makes the vehicle do a_x, so the error dynamics
+above hold for the vehicle, not only for the model. It is the integral action: a constant model error is
+removed exactly, without the integral of e_x (k_int) that winds up in every transient.
 
 What the paper leaves out and a real vehicle needs:
   - the position error fed to k_i is clipped to `max_position_error` (horizontal length): the integral term's
@@ -30,7 +35,7 @@ from controller.gains import BacksteppingGains
 
 @dataclass
 class OuterCommand:
-    """Desired NED acceleration [m/s^2] (x, y from the PI law, z passed in) and its two time derivatives."""
+    """NED acceleration [m/s^2] asked of the model (x, y: the PI law; z passed in) and its two derivatives."""
 
     accel: list[float]
     accel_rate: list[float]
@@ -63,11 +68,15 @@ class OuterLoop:
 
     def update(self, dt: float, position: list[float], velocity: list[float], ref_pos: list[float],
                ref_vel: list[float], ref_acc: list[float], ref_jerk: list[float], ref_snap: list[float],
-               az: tuple[float, float, float], on_ground: bool) -> OuterCommand:
+               az: tuple[float, float, float], on_ground: bool,
+               model_error: tuple[float, float] = (0.0, 0.0),
+               model_error_rate: tuple[float, float] = (0.0, 0.0)) -> OuterCommand:
         """The desired acceleration for the position/velocity NED [m, m/s] and the reference at this step.
 
         az = (a_z, a_z', a_z''): the vertical acceleration the inner loop's z design asks for, and its
         derivatives [m/s^2, m/s^3, m/s^4]; clipped here to the vertical limits for the attitude solve.
+        model_error = (d_x, d_y) [m/s^2]: the vehicle's x'', y'' minus the model's, taken off the request;
+        model_error_rate: its time derivative [m/s^3], taken off the request's (for the attitude feedforward).
         """
         g = self.gains
         e = [ref_pos[0] - position[0], ref_pos[1] - position[1]]
@@ -86,7 +95,8 @@ class OuterLoop:
             self._integral = [0.0, 0.0]
         integ = self._integral
 
-        a = [ref_acc[i] + self._kp[i] * ev[i] + self._ki[i] * ec[i] + g.k_int * integ[i] for i in range(2)]
+        a = [ref_acc[i] + self._kp[i] * ev[i] + self._ki[i] * ec[i] + g.k_int * integ[i] - model_error[i]
+             for i in range(2)]
         up, down = self.vertical_limits()
         a_z = min(max(az[0], up), down)
         a_max = (self._tan_ground if on_ground else self._tan_tilt) * (self.gravity - a_z)
@@ -107,7 +117,7 @@ class OuterLoop:
                 kp, ki, kint = self._kp[i], self._ki[i], g.k_int
                 e2 = -(kp * ev[i] + ki * e[i] + kint * integ[i])
                 e3 = -(kp * e2 + ki * ev[i] + kint * e[i])
-                rate[i] = ref_jerk[i] + kp * e2 + ki * ev[i] + kint * e[i]
+                rate[i] = ref_jerk[i] + kp * e2 + ki * ev[i] + kint * e[i] - model_error_rate[i]
                 rate2[i] = ref_snap[i] + kp * e3 + ki * e2 + kint * ev[i]
         if a_z != az[0]:
             z_rate, z_rate2 = 0.0, 0.0

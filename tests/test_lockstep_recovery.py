@@ -49,7 +49,7 @@ def test_a_lost_reply_is_sent_again_when_the_sitl_resends_its_step(start_sitl, l
         waited = time.monotonic() - t0
         assert loss.dropped == 1 and client.resends == 1
         assert obs.time_usec == lost + 4000
-        assert 0.08 < waited < 0.3  # one SITL re-send period, far below the 0.5 s failsafe bound
+        assert 0.08 < waited < 0.4  # one SITL re-send period (0.1 s), below the 0.5 s failsafe bound
         for _ in range(20):
             previous = obs.time_usec
             obs = client.step(IDLE)
@@ -69,14 +69,15 @@ def test_after_a_failsafe_the_next_step_is_the_newest_not_the_backlog(start_sitl
         first = client.step(IDLE)
         assert client.status_texts[0] == "quadsr failsafe: no reply for 0.2 s, motors off"
         behind = first.time_usec - paused
-        assert 0.25e6 < behind < 0.6e6  # the newest queued step (the backlog walk gave paused + 4000)
+        assert 0.1e6 < behind < 0.6e6  # the newest queued step, ~0.4 s on (the backlog walk gave 4000 us)
         times = [first.time_usec]
         t0 = time.monotonic()
         for _ in range(100):
             times.append(client.step(IDLE).time_usec)
         steps = np.diff(times).tolist()
-        # The SITL may send a step or two between our command reaching it and our drain: one short catch-up.
-        assert 4000 <= steps[0] <= 12000 and set(steps[1:]) == {4000}
+        # Steps the SITL sent between our drain and its reading our command are caught up in one go (normally
+        # none or one step); after that, lockstep again: every step the next one.
+        assert min(steps) == 4000 and sum(s != 4000 for s in steps) <= 2 and set(steps[3:]) == {4000}
         assert time.monotonic() - t0 < 0.4  # lockstep pace again, not the wall-clock pace of the failsafe
         assert any("resumed" in t for t in client.status_texts) and client.resends == 0
     assert sitl.output.count("FAILSAFE") == 1
