@@ -10,31 +10,12 @@ import struct
 import numpy as np
 import pytest
 from conftest import SitlProcess
+from physics_targets import physics_targets, r2
 
 from bridge.errors import UserError
 from bridge.tlog import read_tlog
-from bridge.vehicle import load_vehicle
 from identification.dataset import INPUT_NAMES, STATE_NAMES, TARGET_NAMES, Dataset, load_dataset
 from identification.excite import fly
-
-
-def physics_targets(ds: Dataset) -> np.ndarray:
-    """The SITL's exact accelerations (N,6) at each row's state and rotor speeds."""
-    from sitl.dynamics import Quadrotor
-
-    quad = Quadrotor(load_vehicle("fang-chen-buaa").with_overrides(ground="none"))
-    out = np.empty((len(ds), 6))
-    for i, (x, u) in enumerate(zip(ds.xi, ds.u, strict=True)):
-        quad.reset(
-            position=x[0:3], yaw=x[8], rotor_speeds=u, velocity=x[3:6], rates=x[9:12], roll=x[6], pitch=x[7]
-        )
-        out[i, :3] = quad.acceleration_earth()
-        out[i, 3:] = quad.angular_acceleration()
-    return out
-
-
-def r2(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    return 1.0 - ((estimate - truth) ** 2).sum(0) / ((truth - truth.mean(0)) ** 2).sum(0)
 
 
 @pytest.fixture(scope="module")

@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 from conftest import REPO, SitlProcess
+from physics_targets import physics_targets, r2
 
-from bridge.vehicle import load_vehicle
 from identification.dataset import load_dataset
 from identification.excitation import load_profile
 
@@ -26,24 +26,6 @@ def excite(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
         timeout=timeout,
         cwd=REPO,
     )
-
-
-def physics_targets(ds, ground: str) -> np.ndarray:
-    from sitl.dynamics import Quadrotor
-
-    quad = Quadrotor(load_vehicle("fang-chen-buaa").with_overrides(ground=ground))
-    out = np.empty((len(ds), 6))
-    for i, (x, u) in enumerate(zip(ds.xi, ds.u, strict=True)):
-        quad.reset(
-            position=x[0:3], yaw=x[8], rotor_speeds=u, velocity=x[3:6], rates=x[9:12], roll=x[6], pitch=x[7]
-        )
-        out[i, :3] = quad.acceleration_earth()
-        out[i, 3:] = quad.angular_acceleration()
-    return out
-
-
-def r2(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    return 1.0 - ((estimate - truth) ** 2).sum(0) / ((truth - truth.mean(0)) ** 2).sum(0)
 
 
 @pytest.fixture(scope="module")
