@@ -25,32 +25,12 @@ import sympy
 
 from identification.kinematics import euler_rate_matrix_sym, rotation_matrix_sym
 from identification.model_file import SYMBOLS, TARGET_INFO, TARGET_NAMES, Model, parse_expression
+from identification.paper_model import PAPER_KINEMATICS, PAPER_ZETA, paper_model
 from identification.validate import PAPER_TABLE, comparison_markdown, table_markdown
 
 if TYPE_CHECKING:
     from quadsr.pipeline import PaperRun, TrackingRow
 
-# --------------------------------------------------------------------------------------------------------
-# The paper's equations (Fang & Chen, Sec. II-B), transcribed to our names: xi_4..6 = vx, vy, vz,
-# xi_7..9 = phi, theta, psi, xi_10..12 = wx, wy, wz. zeta_4..6 are x'', y'', z'' and zeta_10..12 are
-# wx', wy', wz'; zeta_7..9 are the known Euler-angle rates.
-
-PAPER_EQUATIONS: dict[str, str] = {
-    "ax": "-0.00768*u1*sin(phi)*sin(psi) - 1.63e-5*u2*u4*sin(phi)*sin(psi)"
-          " - 0.00665*theta*u1*cos(phi)*cos(psi) - 1.63e-5*theta*u2*u4*cos(phi)*cos(psi)",
-    "ay": "7.87e-6*u1**2*sin(phi + psi) + 7.78e-6*u2**2*sin(phi + psi) + 7.78e-6*u3**2*sin(phi + psi)"
-          " + 7.78e-6*u4**2*sin(phi + psi) - 0.0441",
-    "az": "9.44 - 6.90e-6*cos(phi)*(u1**2 + u2**2 + u3**2 + u4**2) - 0.000289*vz**2",
-    "dwx": "0.697*wy*wz + 8.33e-5*(u2**2 + u3**2 - u1**2 - u4**2)",
-    "dwy": "-0.708*wx*wz + 8.03e-5*(u1**2 + u3**2 - u2**2 - u4**2)",
-    "dwz": "0.0219*wx*wy + 4.86e-6*(u1**2 + u2**2 - u3**2 - u4**2)",
-}
-PAPER_ZETA = {"ax": 4, "ay": 5, "az": 6, "dwx": 10, "dwy": 11, "dwz": 12}
-PAPER_KINEMATICS: dict[str, str] = {
-    "dphi": "sin(phi)*sin(theta)/cos(theta)*wy + cos(phi)*sin(theta)/cos(theta)*wz + wx",
-    "dtheta": "cos(phi)*wy - sin(phi)*wz",
-    "dpsi": "sin(phi)/cos(theta)*wy + cos(phi)/cos(theta)*wz",
-}
 SIGN_NOTES = """\
 - Frames: the paper's earth frame has gravity along +Z_e and thrust along -Z_b, as our NED earth and FRD body
   frames, so x'', y'', z'' and wx', wy', wz' compare directly.
@@ -214,13 +194,6 @@ def equation_latex(expr: sympy.Expr) -> str:
         parts.append(("- " if c < 0 else "+ ") + body)
     text = " ".join(parts)
     return text[2:] if text.startswith("+ ") else text
-
-
-@functools.lru_cache(maxsize=1)
-def paper_model() -> Model:
-    """The paper's zeta_4..6 and zeta_10..12 as a Model in our variable names."""
-    return Model({name: parse_expression(text) for name, text in PAPER_EQUATIONS.items()}, kind="learned",
-                 engine={"name": "paper (Eureqa)"})
 
 
 @functools.lru_cache(maxsize=1)

@@ -15,6 +15,7 @@ from bridge.errors import UserError
 from bridge.vehicle import load_vehicle
 from controller.derivation import F, derive_law, motor_form, solve_small
 from identification.model_file import SYMBOLS as S
+from identification.paper_model import paper_model as paper_learned_model
 from identification.true_model import true_model_expressions
 
 W_MAX = 1006.6
@@ -37,20 +38,7 @@ def true_law(true_exprs):
 
 def paper_model() -> dict[str, sympy.Expr]:
     """The paper's learned equations (Section II-B), zeta_4..zeta_12 in our symbols."""
-    u1, u2, u3, u4 = (S[n] for n in ("u1", "u2", "u3", "u4"))
-    phi, theta, psi, vz, wx, wy, wz = (S[n] for n in ("phi", "theta", "psi", "vz", "wx", "wy", "wz"))
-    sin, cos = sympy.sin, sympy.cos
-    return {
-        "ax": (-0.00768 * u1 * sin(phi) * sin(psi) - 1.63e-5 * u2 * u4 * sin(phi) * sin(psi)
-               - 0.00665 * theta * u1 * cos(phi) * cos(psi)
-               - 1.63e-5 * theta * u2 * u4 * cos(phi) * cos(psi)),
-        "ay": ((7.87e-6 * u1**2 + 7.78e-6 * u2**2 + 7.78e-6 * u3**2 + 7.78e-6 * u4**2) * sin(phi + psi)
-               - 0.0441),
-        "az": 9.44 - 6.90e-6 * cos(phi) * (u1**2 + u2**2 + u3**2 + u4**2) - 0.000289 * vz**2,
-        "dwx": 0.697 * wy * wz + 8.33e-5 * (u2**2 + u3**2 - u1**2 - u4**2),
-        "dwy": -0.708 * wx * wz + 8.03e-5 * (u1**2 + u3**2 - u2**2 - u4**2),
-        "dwz": 0.0219 * wx * wy + 4.86e-6 * (u1**2 + u2**2 - u3**2 - u4**2),
-    }
+    return dict(paper_learned_model().expressions)
 
 
 def test_motor_form_writes_even_powers_in_f_and_keeps_odd_ones():
