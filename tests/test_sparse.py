@@ -6,8 +6,8 @@ import time
 
 import numpy as np
 import pytest
+from synthetic_data import synthetic_dataset
 
-from identification.dataset import Dataset
 from identification.engine import SparseSettings, split_holdout
 from identification.identify import identify
 from identification.metrics import loss, r2
@@ -17,25 +17,8 @@ from identification.true_model import random_states, true_model
 from identification.validate import compare_models
 
 
-def _dataset(n: int, seed: int, noise: float = 0.0) -> Dataset:
-    """Synthetic flight: random states and rotor speeds, targets from the true model (+ noise x std)."""
-    xi, u = random_states(n, seed)
-    y = true_model("fang-chen-buaa").accelerations(xi, u)
-    if noise:
-        y = y + noise * y.std(axis=0) * np.random.default_rng(seed + 1).standard_normal(y.shape)
-    return Dataset(
-        t=np.arange(n) * 0.004,
-        xi=xi,
-        u=u,
-        targets=y,
-        source="synthetic",
-        format="synthetic",
-        target_source="truth",
-    )
-
-
 def test_recovers_every_true_term_within_2_percent_in_seconds():
-    data = _dataset(3000, seed=11)
+    data = synthetic_dataset(3000, seed=11)
     start = time.perf_counter()
     model = identify(data, engine="sparse", budget_s=30, seed=0, progress=False)
     elapsed = time.perf_counter() - start
@@ -50,7 +33,7 @@ def test_recovers_every_true_term_within_2_percent_in_seconds():
 
 
 def test_with_one_percent_noise_every_target_keeps_r2_above_0_99():
-    data = _dataset(3000, seed=12, noise=0.01)
+    data = synthetic_dataset(3000, seed=12, noise=0.01)
     model = identify(data, engine="sparse", budget_s=30, seed=0, progress=False)
     for name in TARGET_NAMES:
         assert model.targets[name].metrics["validation"]["r2"] >= 0.99, name

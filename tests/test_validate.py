@@ -5,13 +5,12 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-import numpy as np
 import pytest
 import sympy
+from synthetic_data import synthetic_dataset
 
-from identification.dataset import Dataset
 from identification.model_file import SYMBOLS, Model, load_model
-from identification.true_model import random_states, true_model
+from identification.true_model import true_model
 from identification.validate import validate
 from quadsr.cli import main
 
@@ -19,25 +18,11 @@ S = SYMBOLS
 ULOG = Path(__file__).resolve().parents[2] / "shared" / "logs" / "px4_sitl_quad_takeoff.ulg"
 
 
-def _dataset(n: int = 800, seed: int = 41) -> Dataset:
-    xi, u = random_states(n, seed)
-    y = true_model("fang-chen-buaa").accelerations(xi, u)
-    return Dataset(
-        t=np.arange(n) * 0.004,
-        xi=xi,
-        u=u,
-        targets=y,
-        source="synthetic",
-        format="synthetic",
-        target_source="truth",
-    )
-
-
 def test_validate_writes_table_csv_and_figure_with_right_numbers(tmp_path):
     truth = true_model("fang-chen-buaa")
     exprs = dict(truth.expressions)
     exprs["dwx"] = exprs["dwx"] + sympy.Float(0.5)  # a known error: RMSE = MAE = 0.5 on wx'
-    report = validate(Model(exprs), _dataset(), tmp_path / "out")
+    report = validate(Model(exprs), synthetic_dataset(800, seed=41), tmp_path / "out")
     assert report.metrics["ax"]["r2"] == pytest.approx(1.0) and report.metrics["ax"]["rmse"] < 1e-9
     assert report.metrics["dwx"]["rmse"] == pytest.approx(0.5) and report.metrics["dwx"][
         "mae"
@@ -61,7 +46,7 @@ def test_comparison_flags_a_missing_term_an_extra_term_and_coefficient_errors(tm
     damping = learned_dwx.coeff(wx) * wx
     # drop the damping term, add a spurious one, and make the gyroscopic coefficient 1% too large
     exprs["dwx"] = learned_dwx - damping + 0.01 * gyro + sympy.Float(0.3) * wz
-    report = validate(Model(exprs), _dataset(), tmp_path, reference=truth)
+    report = validate(Model(exprs), synthetic_dataset(800, seed=41), tmp_path, reference=truth)
     by_target = {c.target: c for c in report.comparisons}
     assert all(by_target[t].same_terms for t in ("ax", "ay", "az", "dwy", "dwz"))
     c = by_target["dwx"]
