@@ -52,9 +52,8 @@ def squared_speeds(f: np.ndarray) -> np.ndarray:
 
 
 def _q(t: float, r: float, p: float, y: float) -> list[float]:
-    return [
-        (t + ROLL_SIGN[i] * r + PITCH_SIGN[i] * p + YAW_SIGN[i] * y) * 0.25 for i in range(4)
-    ]
+    # M^T f / 4 written out (the columns ROLL_SIGN, PITCH_SIGN, YAW_SIGN): this runs every control step
+    return [(t - r + p + y) * 0.25, (t + r - p + y) * 0.25, (t + r + p - y) * 0.25, (t - r - p - y) * 0.25]
 
 
 def _yaw_scale(t: float, att: list[float], yaw: list[float], q4max: float) -> float | None:
@@ -73,8 +72,9 @@ def _yaw_scale(t: float, att: list[float], yaw: list[float], q4max: float) -> fl
 
 def allocate(f: np.ndarray | list[float], w_max: float) -> Allocation:
     """Rotor speeds [rad/s] in [0, w_max] realising f [(rad/s)^2], with roll/pitch > thrust > yaw priority."""
-    t, r, p, y = (float(v) for v in f)
-    if not all(math.isfinite(v) for v in (t, r, p, y)):
+    t, r, p, y = f
+    t, r, p, y = float(t), float(r), float(p), float(y)
+    if not (math.isfinite(t) and math.isfinite(r) and math.isfinite(p) and math.isfinite(y)):
         t, r, p, y = 0.0, 0.0, 0.0, 0.0
         stage_bad = True
     else:
@@ -83,7 +83,8 @@ def allocate(f: np.ndarray | list[float], w_max: float) -> Allocation:
     q4max = 4.0 * qmax
     q = _q(t, r, p, y)
     stage = "none"
-    if stage_bad or min(q) < 0.0 or max(q) > qmax:
+    if stage_bad or not (0.0 <= q[0] <= qmax and 0.0 <= q[1] <= qmax and 0.0 <= q[2] <= qmax
+                         and 0.0 <= q[3] <= qmax):
         att = [ROLL_SIGN[i] * r + PITCH_SIGN[i] * p for i in range(4)]
         yaw = [YAW_SIGN[i] * y for i in range(4)]
         lam = _yaw_scale(t, att, yaw, q4max)
@@ -108,7 +109,7 @@ def allocate(f: np.ndarray | list[float], w_max: float) -> Allocation:
         if stage_bad:
             stage = "attitude"
         q = _q(t, r, p, y)
-    sq = [min(max(v, 0.0), qmax) for v in q]
+    sq = [0.0 if v < 0.0 else qmax if v > qmax else v for v in q]
     speeds = [math.sqrt(v) for v in sq]
     applied = [
         sq[0] + sq[1] + sq[2] + sq[3],

@@ -26,8 +26,9 @@ from typing import Any
 import numpy as np
 import sympy
 
+from controller import native
 from controller.allocation import allocate
-from controller.derivation import XI, DerivedLaw, U, derive_law, normalise
+from controller.derivation import XI, DerivedLaw, U, derive_law, fast_function, normalise
 from controller.gains import BacksteppingGains, validate_gains
 from controller.outer_loop import OuterLoop
 from controller.plugin import Command, Reference, VehicleState
@@ -59,13 +60,15 @@ class ModelErrorObserver:
     """
 
     def __init__(self, expressions: Mapping[str, sympy.Expr], rate: float, angular_rate: float,
-                 max_accel: float, max_angular: float):
+                 max_accel: float, max_angular: float, hover_speed: float = 0.0):
         names = TARGET_NAMES if angular_rate > 0.0 else TARGET_NAMES[:3]
         self._accel = None
+        self.code = "off"  # its model function: "native", why it is Python, or off
         if rate > 0.0 or angular_rate > 0.0:
             norm = normalise(expressions)
-            self._accel = sympy.lambdify(list(XI) + list(U), [norm[n] for n in names], modules="math",
-                                         cse=True)
+            self._accel = fast_function("model (observer)", list(XI) + list(U), [norm[n] for n in names],
+                                        dict.fromkeys(U, hover_speed))
+            self.code = native.status().get("model (observer)", self.code)
         self._rates = ((rate,) * 3 + (angular_rate,) * 3)[: len(names)]
         self._limits = ((max_accel,) * 3 + (max_angular,) * 3)[: len(names)]
         self._dt = -1.0
@@ -150,6 +153,13 @@ def rotation(phi: float, theta: float, psi: float) -> list[list[float]]:
             [-st, sf * ct, cf * ct]]
 
 
+def _floats(values: Any) -> list[float]:
+    """A vector as a list of Python floats (math on those is several times faster than on numpy scalars)."""
+    if isinstance(values, np.ndarray):
+        return values.astype(float, copy=False).tolist()
+    return [float(v) for v in values]
+
+
 def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
@@ -183,7 +193,7 @@ class BacksteppingController:
         self.outer_loop = OuterLoop(self.gains, self.law.gravity)
         g = self.gains
         self.observer = ModelErrorObserver(exprs, g.observer_rate, g.observer_angular_rate,
-                                           g.observer_max_accel, g.observer_max_angular)
+                                           g.observer_max_accel, g.observer_max_angular, self.law.hover_speed)
         c = self.gains.c_gains
         self._c = c
         self._kz = (1.0 + c[0] * c[4], c[0] + c[4])  # z error dynamics e'' + kz1 e' + kz0 e = 0
@@ -205,7 +215,7 @@ class BacksteppingController:
 
     def describe(self) -> str:
         """How the law was derived (one line)."""
-        return self.law.describe()
+        return f"{self.law.describe()}; model-error observer: {self.observer.code}"
 
     def reset(self) -> None:
         """Clear the integrator, the command filter and the warm starts."""
@@ -223,16 +233,14 @@ class BacksteppingController:
     def update(self, t: float, state: VehicleState, reference: Reference) -> Command:
         """Motor speeds [rad/s, PX4 order] in [0, w_max] for the state (NED/FRD) and reference at t [s]."""
         law, g, c = self.law, self.gains, self._c
-        xi = np.asarray(state.xi, dtype=float).tolist()
-        u_meas = np.asarray(state.rotor_speeds, dtype=float).tolist()
+        xi = _floats(state.xi)
+        u_meas = _floats(state.rotor_speeds)
         dt = NOMINAL_DT if self._t_prev is None else max(t - self._t_prev, 0.0)
         self._t_prev = t
         pos, vel = xi[0:3], xi[3:6]
         phi, theta, psi = xi[6], xi[7], xi[8]
-        rp, rv, ra = (np.asarray(v, dtype=float).tolist() for v in
-                      (reference.position, reference.velocity, reference.acceleration))
-        rj = np.asarray(reference.jerk, dtype=float).tolist()
-        rs = np.asarray(reference.snap, dtype=float).tolist()
+        rp, rv, ra = _floats(reference.position), _floats(reference.velocity), _floats(reference.acceleration)
+        rj, rs = _floats(reference.jerk), _floats(reference.snap)
         on_ground = pos[2] > -g.ground_clearance
         dphi, dtheta, dpsi = law.inner.euler_angle_rates(xi)
         if on_ground:
@@ -312,7 +320,7 @@ class BacksteppingController:
         self._f = list(f)
         alloc = allocate(f, self.w_max)
         if not on_ground:
-            self.observer.start_step(xi, np.asarray(alloc.speeds, dtype=float).tolist())
+            self.observer.start_step(xi, alloc.speeds.tolist())
         return Command(
             rotor_speeds=alloc.speeds,
             saturated=alloc.saturated,

@@ -102,6 +102,9 @@ def run_fly(args: argparse.Namespace) -> int:
                               progress=not args.no_progress)
     print(f"quadsr fly: {controller.name} on {trajectory.name} for {duration:g} s, state from {args.state}, "
           f"SITL at {args.hil}, output in {out}", flush=True)
+    describe = getattr(controller, "describe", None)
+    if describe is not None:
+        print(f"quadsr fly: law: {describe()}", flush=True)
     result = Companion(controller, trajectory, vehicle, settings).fly(out)
     m = result.metrics
     if m is not None:

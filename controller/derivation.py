@@ -33,6 +33,7 @@ the motors, a singular motor effect, x'' and y'' not depending on roll and pitch
 from __future__ import annotations
 
 import math
+import string
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
@@ -41,6 +42,7 @@ import sympy
 from scipy.optimize import brentq
 
 from bridge.errors import UserError
+from controller import native
 from identification.model_file import INPUT_NAMES, STATE_NAMES, SYMBOLS, TARGET_NAMES
 
 XI = tuple(SYMBOLS[n] for n in STATE_NAMES)
@@ -97,10 +99,30 @@ def normalise(expressions: Mapping[str, sympy.Expr]) -> dict[str, sympy.Expr]:
     return out
 
 
-def _lambdify(args: list[sympy.Symbol], exprs: list[sympy.Expr]) -> Callable[..., list[float]]:
+def fast_function(name: str, args: list[sympy.Symbol], exprs: list[sympy.Expr],
+              sample: Mapping[sympy.Symbol, float] | None = None) -> Callable[..., list[float]]:
+    """The expressions as one fast function of args: native code (controller.native), else math-module Python.
+
+    sample: values of some args inside the expressions' domain (others 0) where the native twin is checked.
+    """
     # math module: scalar floats are several times faster than numpy for these small expressions.
     exprs = [e.replace(sympy.DiracDelta, lambda *a: sympy.Integer(0)) for e in exprs]
-    return sympy.lambdify(args, exprs, modules="math", cse=True)
+    python = sympy.lambdify(args, exprs, modules="math", cse=True)
+    return native.compile_expressions(name, args, exprs, python, _sample(args, sample))
+
+
+def _program(unit: native.NativeUnit, cname: str, args: list[sympy.Symbol],
+             exprs: list[sympy.Expr]) -> Callable[..., list[float]]:
+    """Add the expressions (common subexpressions shared) to a native unit as cname; their Python function."""
+    exprs = [e.replace(sympy.DiracDelta, lambda *a: sympy.Integer(0)) for e in exprs]
+    steps, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols("c_", real=True))
+    unit.program(cname, args, steps, reduced)
+    return sympy.lambdify(args, reduced, modules="math", cse=lambda _e: (steps, list(reduced)))
+
+
+def _sample(args: list[sympy.Symbol], values: Mapping[sympy.Symbol, float] | None) -> list[float]:
+    values = values or {}
+    return [float(values.get(a, 0.0)) for a in args]
 
 
 class _Program:
@@ -166,10 +188,15 @@ class _Program:
             seconds.append(_no_delta(b))
         return firsts, seconds
 
-    def compile(self, args: list[sympy.Symbol], outputs: list[sympy.Expr]) -> Callable[..., list[float]]:
+    def python(self, args: list[sympy.Symbol], outputs: list[sympy.Expr]) -> Callable[..., list[float]]:
         """A math-module function of args returning the outputs, computing every step once."""
         steps = list(self.steps)
         return sympy.lambdify(args, outputs, modules="math", cse=lambda _e: (steps, list(outputs)))
+
+    def add_to(self, unit: native.NativeUnit, cname: str, args: list[sympy.Symbol],
+               outputs: list[sympy.Expr]) -> None:
+        """The same function as C in a native unit."""
+        unit.program(cname, args, list(self.steps), outputs)
 
 
 def _no_delta(e: sympy.Expr) -> sympy.Expr:
@@ -252,6 +279,74 @@ def _solve4(a: list[list[float]], b: list[float]) -> list[float] | None:
 # ----------------------------------------------------------------------------------------------------------
 # Outer loop
 
+# The outer loop's Newton solve and rates as C, in a unit with the generated programs fj (F, dF/dq row-major),
+# jac_first (dF/dq, F_p p') and second (d2F/dt2 at q'' = 0). Each mirrors its Python version line by line
+# (OuterInversion._newton_python, ._rates_python); build_unit checks that they agree before using them.
+_OUTER_C = r"""
+#define ON $N
+#define OM $M
+/* in: a[N], pv[M], guess[N], max_iter, angle_limit; out: q[N], ok, iterations */
+static void outer_newton(const double *restrict in, double *restrict out) {
+  const double *a = in, *pv = in + ON;
+  double q[ON], args[ON + OM], buf[ON + ON * ON], rhs[ON], step[ON];
+  for (int i = 0; i < ON; i++) q[i] = in[ON + OM + i];
+  const double max_iter = in[2 * ON + OM], lim = in[2 * ON + OM + 1];
+  double amax = 0.0;
+  for (int i = 0; i < ON; i++) if (fabs(a[i]) > amax) amax = fabs(a[i]);
+  const double tol = 1e-9 * (1.0 + amax);
+  for (int j = 0; j < OM; j++) args[ON + j] = pv[j];
+  int it = 0, ok = 0;
+  while (it < max_iter) {
+    it++;
+    for (int i = 0; i < ON; i++) args[i] = q[i];
+    fj(args, buf);
+    int small = 1;
+    for (int i = 0; i < ON; i++) {
+      rhs[i] = -(buf[i] - a[i]);
+      if (!(fabs(rhs[i]) < tol)) small = 0;
+    }
+    if (small) { ok = 1; break; }
+    if (!solve_small(ON, buf + ON, rhs, step)) break;
+    const double big = fmax(fabs(step[0]), fabs(step[1]));
+    const double k = big <= 0.3 ? 1.0 : 0.3 / big;
+    for (int i = 0; i < ON; i++) q[i] += k * step[i];
+    q[0] = fmin(fmax(q[0], -lim), lim);
+    q[1] = fmin(fmax(q[1], -lim), lim);
+    if (ON == 3 && q[ON - 1] < 0.0) q[ON - 1] = 0.0;
+    if (k == 1.0 && big < 2e-4 && (ON == 2 || fabs(step[ON - 1]) < 2e-4 * (1.0 + fabs(q[ON - 1])))) {
+      ok = 1;
+      break;
+    }
+  }
+  for (int i = 0; i < ON; i++) out[i] = q[i];
+  out[ON] = ok;
+  out[ON + 1] = it;
+}
+
+/* in: q[N], pv[M], p1[M], p2[M], a1[N], a2[N]; out: ok, q'[N], q''[N] */
+static void outer_rates(const double *restrict in, double *restrict out) {
+  const double *q = in, *pv = in + ON, *p1 = in + ON + OM, *p2 = in + ON + 2 * OM;
+  const double *a1 = in + ON + 3 * OM, *a2 = a1 + ON;
+  double args1[ON + 2 * OM], buf1[ON * ON + ON], rhs[ON], d1[ON], d2[ON], args2[2 * ON + 3 * OM], s2[ON];
+  for (int i = 0; i < ON; i++) args1[i] = args2[i] = q[i];
+  for (int j = 0; j < OM; j++) {
+    args1[ON + j] = args2[ON + j] = pv[j];
+    args1[ON + OM + j] = args2[2 * ON + OM + j] = p1[j];
+    args2[2 * ON + 2 * OM + j] = p2[j];
+  }
+  out[0] = 0.0;
+  jac_first(args1, buf1);
+  for (int i = 0; i < ON; i++) rhs[i] = a1[i] - buf1[ON * ON + i];
+  if (!solve_small(ON, buf1, rhs, d1)) return;
+  for (int i = 0; i < ON; i++) args2[ON + OM + i] = d1[i];
+  second(args2, s2);
+  for (int i = 0; i < ON; i++) rhs[i] = a2[i] - s2[i];
+  if (!solve_small(ON, buf1, rhs, d2)) return;
+  out[0] = 1.0;
+  for (int i = 0; i < ON; i++) { out[1 + i] = d1[i]; out[1 + ON + i] = d2[i]; }
+}
+"""
+
 
 @dataclass
 class OuterSolution:
@@ -287,13 +382,20 @@ class OuterInversion:
         self.params: tuple[sympy.Symbol, ...] = tuple(params)
         # where each parameter comes from at run time: the state, the measured rotor speeds u, or their f
         self._param_src = [_source(s) for s in self.params]
+        # the usual case, parameters all states: their indices into xi (the loop then builds no branches)
+        self._xi_index = [i for _, i in self._param_src] if all(src == "xi" for src, _ in self._param_src) \
+            else None
         n = self.n
         q, p = list(self.unknowns), list(self.params)
+        hover = {PHI: 0.0, THETA: 0.0, F[0]: hover_f1, **dict(zip(p, self.param_values(hover_xi, hover_u),
+                                                                  strict=True))}
         # F and F_q in one program; F_p p' in a second; the second-order terms (q'' = 0) in a third
+        unit = native.NativeUnit()
         prog = _Program(list(eqs))
         cols = [prog.directional({qi: sympy.Integer(1)}, None, f"j{k}")[0] for k, qi in enumerate(q)]
         jac = [cols[c][r] for r in range(n) for c in range(n)]
-        self._fj = prog.compile(q + p, list(prog.values) + jac)
+        self._fj = prog.python(q + p, list(prog.values) + jac)
+        prog.add_to(unit, "fj", q + p, list(prog.values) + jac)
         q1 = [sympy.Symbol(f"dq{i}_", real=True) for i in range(n)]
         p1 = [sympy.Symbol(f"dp_{s.name}", real=True) for s in p]
         p2 = [sympy.Symbol(f"ddp_{s.name}", real=True) for s in p]
@@ -301,14 +403,55 @@ class OuterInversion:
         first, _ = prog1.directional(dict(zip(p, p1, strict=True)), None, "p")
         cols1 = [prog1.directional({qi: sympy.Integer(1)}, None, f"j{k}")[0] for k, qi in enumerate(q)]
         jac1 = [cols1[c][r] for r in range(n) for c in range(n)]
-        self._jac_first = prog1.compile(q + p + p1, jac1 + first)
+        self._jac_first = prog1.python(q + p + p1, jac1 + first)
+        prog1.add_to(unit, "jac_first", q + p + p1, jac1 + first)
         prog2 = _Program(list(eqs))
         seeds1 = {**dict(zip(q, q1, strict=True)), **dict(zip(p, p1, strict=True))}
         _, second = prog2.directional(seeds1, dict(zip(p, p2, strict=True)), "s")
-        self._second = prog2.compile(q + p + q1 + p1 + p2, second)
+        self._second = prog2.python(q + p + q1 + p1 + p2, second)
+        prog2.add_to(unit, "second", q + p + q1 + p1 + p2, second)
         self.param_names = tuple(s.name for s in p)
+        self._newton: Callable[..., list[float]] | None = None
+        self._rates: Callable[..., list[float]] | None = None
+        self._compile_native(unit, [hover[s] for s in q], [hover[s] for s in p])
         self.closed_form = self._try_closed_form(eqs, hover_xi, hover_u, hover_f1)
         self.method = "closed-form" if self.closed_form is not None else "newton"
+
+    def _compile_native(self, unit: native.NativeUnit, q0: list[float], pv0: list[float]) -> None:
+        """The Newton solve and the rates, programs and loops, as one native unit (each checked against
+        its Python version at points around hover); kept as Python where that cannot be."""
+        n, m = self.n, len(self.params)
+        unit.code(string.Template(_OUTER_C).substitute(N=n, M=m))
+        unit.export("fj", n + m, n + n * n)
+        unit.export("outer_newton", 2 * n + m + 2, n + 2)
+        unit.export("outer_rates", 3 * n + 3 * m, 1 + 2 * n)
+        a0 = [0.0] * n  # F(q0) at hover is (0, 0, 0): ask for a small acceleration instead
+        newton_points = [[*(v + 0.3 for v in a0), *pv0, *q0, 8.0, 1.2],
+                         [*(v - 0.7 for v in a0), *pv0, *q0, 8.0, 1.2],
+                         [*a0, *(v + 0.05 for v in pv0), *q0, 3.0, 1.2]]
+        pts = native.points_near([*q0, *pv0, *([0.1] * m), *([0.2] * m), *([0.3] * n), *([0.4] * n)])
+        fns = native.build_unit(unit, {
+            "fj": ("outer F, dF/dq", self._fj, native.points_near([*q0, *pv0])),
+            "outer_newton": ("outer Newton solve", self._newton_flat, newton_points),
+            "outer_rates": ("outer q', q''", self._rates_flat, pts),
+        })
+        self._fj = fns["fj"]
+        self._newton = fns["outer_newton"] if fns["outer_newton"] is not self._newton_flat else None
+        self._rates = fns["outer_rates"] if fns["outer_rates"] is not self._rates_flat else None
+
+    def _newton_flat(self, *values: float) -> list[float]:
+        n, m = self.n, len(self.params)
+        a, pv, guess = list(values[:n]), list(values[n:n + m]), list(values[n + m:2 * n + m])
+        q, ok, it = self._newton_python(a, pv, guess, values[2 * n + m], values[2 * n + m + 1])
+        return [*q, float(ok), float(it)]
+
+    def _rates_flat(self, *values: float) -> list[float]:
+        n, m = self.n, len(self.params)
+        q, pv = list(values[:n]), list(values[n:n + m])
+        p1, p2 = list(values[n + m:n + 2 * m]), list(values[n + 2 * m:n + 3 * m])
+        a1, a2 = list(values[n + 3 * m:2 * n + 3 * m]), list(values[2 * n + 3 * m:])
+        r = self._rates_python(q, pv, a1, a2, p1, p2)
+        return [0.0] + [math.nan] * (2 * n) if r is None else [1.0, *r[0], *r[1]]
 
     # -- closed form ---------------------------------------------------------------------------------
     def _try_closed_form(self, eqs: list[sympy.Expr], hover_xi: list[float], hover_u: list[float],
@@ -355,7 +498,7 @@ class OuterInversion:
             unknowns.remove(unk)
             remaining.pop(k)
         exprs = [solution[u] for u in self.unknowns]
-        return _lambdify(a_syms + list(self.params), exprs)
+        return fast_function("outer closed form", a_syms + list(self.params), exprs, nominal)
 
     def _param_value_static(self, s: sympy.Symbol, xi: list[float], u: list[float]) -> float:
         return self.param_values(xi, u)[self.params.index(s)]
@@ -363,6 +506,8 @@ class OuterInversion:
     # -- numeric --------------------------------------------------------------------------------------
     def param_values(self, xi: list[float], u: list[float]) -> list[float]:
         """The parameter values (states other than the unknowns; frozen u or its f2..f4), params order."""
+        if self._xi_index is not None:
+            return [xi[i] for i in self._xi_index]
         out = []
         fm = None
         for src, i in self._param_src:
@@ -379,7 +524,9 @@ class OuterInversion:
         """F(q, p) and dF/dq at unknowns q and parameters p."""
         out = self._fj(*q, *pv)
         n = self.n
-        return list(out[:n]), [list(out[n + r * n: n + (r + 1) * n]) for r in range(n)]
+        if n == 3:
+            return out[:3], [out[3:6], out[6:9], out[9:12]]
+        return out[:2], [out[2:4], out[4:6]]
 
     def solve(self, a: list[float], xi: list[float], u: list[float], guess: list[float],
               max_iter: int = 8, angle_limit: float = 1.2) -> OuterSolution:
@@ -396,6 +543,18 @@ class OuterInversion:
                     return OuterSolution(q[0], q[1], q[2] if n == 3 else math.nan, True, 0, "closed-form")
             except (ValueError, ZeroDivisionError, OverflowError):
                 pass
+        if self._newton is not None:
+            out = self._newton(*a[:n], *pv, *q, max_iter, angle_limit)
+            q = out[:n]
+            ok, it = out[n] > 0.5, int(out[n + 1])
+        else:
+            q, ok, it = self._newton_python(a, pv, q, max_iter, angle_limit)
+        return OuterSolution(q[0], q[1], q[2] if n == 3 else math.nan, ok, it, method)
+
+    def _newton_python(self, a: list[float], pv: list[float], q: list[float], max_iter: float,
+                       angle_limit: float) -> tuple[list[float], bool, int]:
+        """Newton's method on F(q) = a from q: (q, converged, iterations). Mirrored in _OUTER_C."""
+        n = self.n
         tol = 1e-9 * (1.0 + max(abs(v) for v in a[:n]))
         it = 0
         ok = False
@@ -425,15 +584,26 @@ class OuterInversion:
             if k == 1.0 and big < 2e-4 and (n == 2 or abs(step[2]) < 2e-4 * (1.0 + abs(q[2]))):
                 ok = True
                 break
-        return OuterSolution(q[0], q[1], q[2] if n == 3 else math.nan, ok, it, method)
+        return q, ok, it
 
     def rates(self, q: list[float], xi: list[float], u: list[float], a1: list[float], a2: list[float],
               p1: list[float], p2: list[float]) -> tuple[list[float], list[float]] | None:
         """(q', q'') of the unknowns from the desired a', a'' and the parameters' p', p'' (None: singular)."""
         pv = self.param_values(xi, u)
         n = self.n
+        if self._rates is not None:
+            out = self._rates(*q[:n], *pv, *p1, *p2, *a1[:n], *a2[:n])
+            if out[0] < 0.5:
+                return None
+            return out[1:1 + n], out[1 + n:]
+        return self._rates_python(q, pv, a1, a2, p1, p2)
+
+    def _rates_python(self, q: list[float], pv: list[float], a1: list[float], a2: list[float],
+                      p1: list[float], p2: list[float]) -> tuple[list[float], list[float]] | None:
+        """rates() at parameter values pv. Mirrored in _OUTER_C."""
+        n = self.n
         out = self._jac_first(*q, *pv, *p1)
-        jac = [list(out[r * n: (r + 1) * n]) for r in range(n)]
+        jac = [out[r * n: (r + 1) * n] for r in range(n)]
         fp = out[n * n:]
         d1 = solve_small(jac, [a1[i] - fp[i] for i in range(n)])
         if d1 is None:
@@ -470,6 +640,19 @@ def _guard_inverse_trig(expr: sympy.Expr) -> sympy.Expr:
 # ----------------------------------------------------------------------------------------------------------
 # Inner loop
 
+# The affine inner solve as C, with the generated program affine (G0, then G1 row-major): mirrors the
+# affine branch of InnerInversion.solve (checked against it by build_unit).
+_INNER_C = r"""
+/* in: xi[12], u[4], v[4]; out: ok, f[4] */
+static void inner_linear(const double *restrict in, double *restrict out) {
+  double g[20], rhs[4], f[4] = {0.0, 0.0, 0.0, 0.0};
+  affine(in, g);
+  for (int i = 0; i < 4; i++) rhs[i] = in[16 + i] - g[i];
+  out[0] = solve_small(4, g + 4, rhs, f);
+  for (int i = 0; i < 4; i++) out[1 + i] = f[i];
+}
+"""
+
 
 def euler_rate_matrix(phi: sympy.Expr, theta: sympy.Expr) -> sympy.Matrix:
     """The paper's R: (phi', theta', psi') = R(phi, theta) (wx, wy, wz)."""
@@ -484,7 +667,8 @@ def euler_rate_matrix(phi: sympy.Expr, theta: sympy.Expr) -> sympy.Matrix:
 class InnerInversion:
     """gamma_5..8(s, f) from the model, and the solve gamma(s, f) = v for f = (f1..f4) [(rad/s)^2]."""
 
-    def __init__(self, motor_exprs: dict[str, sympy.Expr]):
+    def __init__(self, motor_exprs: dict[str, sympy.Expr], hover_u: list[float] | None = None,
+                 hover_f: list[float] | None = None):
         w = sympy.Matrix([WX, WY, WZ])
         r = euler_rate_matrix(PHI, THETA)
         euler_rates = r * w
@@ -497,12 +681,36 @@ class InnerInversion:
         self.jacobian = jac
         self.affine = all(sympy.diff(jac[i, j], fk) == 0 for i in range(4) for j in range(4) for fk in F)
         args = list(XI) + list(U)
+        hover = {**dict(zip(U, hover_u or [], strict=False)), **dict(zip(F, hover_f or [], strict=False))}
+        unit = native.NativeUnit()
+        twins: dict[str, native.Twin] = {}
         if self.affine:
             g0 = [g.xreplace(dict.fromkeys(F, 0)) for g in self.gammas]
-            self._affine = _lambdify(args, g0 + list(jac))
-        self._gamma = _lambdify(args + list(F), self.gammas + list(jac))
-        self._rates = _lambdify(list(XI), self.euler_rates)
+            self._affine = _program(unit, "affine", args, g0 + list(jac))
+            unit.code(_INNER_C)
+            unit.export("inner_linear", 20, 5)
+            sample = _sample(args, hover)
+            twins["inner_linear"] = ("inner linear solve", self._linear_flat,
+                                     native.points_near([*sample, 1.0, 2.0, 3.0, 0.5]))
+        self._gamma = _program(unit, "gamma", args + list(F), self.gammas + list(jac))
+        unit.export("gamma", 20, 20)
+        twins["gamma"] = ("inner gamma, dgamma/df", self._gamma, native.points_near(_sample(args + list(F),
+                                                                                              hover)))
+        self._rates = _program(unit, "rates", list(XI), self.euler_rates)
+        unit.export("rates", 12, 3)
+        twins["rates"] = ("Euler angle rates", self._rates, native.points_near([0.1] * 12))
+        fns = native.build_unit(unit, twins)
+        self._gamma, self._rates = fns["gamma"], fns["rates"]
+        self._linear = None
+        if self.affine and fns["inner_linear"] is not self._linear_flat:
+            self._linear = fns["inner_linear"]
         self.method = "linear" if self.affine else "newton"
+
+    def _linear_flat(self, *values: float) -> list[float]:
+        """The affine solve in Python, flat in and out as the C inner_linear: (ok, f1..f4)."""
+        g0, g1 = self.affine_terms(list(values[:12]), list(values[12:16]))
+        f = solve_small(g1, [values[16 + i] - g0[i] for i in range(4)])
+        return [0.0] + [math.nan] * 4 if f is None else [1.0, *f]
 
     def euler_angle_rates(self, xi: list[float]) -> list[float]:
         """(phi', theta', psi') [rad/s] = R(phi, theta) w."""
@@ -515,22 +723,21 @@ class InnerInversion:
     def affine_terms(self, xi: list[float], u: list[float]) -> tuple[list[float], list[list[float]]]:
         """G0 (4) and G1 (4x4) with gamma = G0 + G1 f (affine models only)."""
         out = self._affine(*xi, *u)
-        return list(out[:4]), [list(out[4 + 4 * r: 8 + 4 * r]) for r in range(4)]
+        return out[:4], [out[4:8], out[8:12], out[12:16], out[16:20]]
 
     def solve(self, v: list[float], xi: list[float], u: list[float], guess: list[float],
               max_iter: int = 8) -> tuple[list[float], bool]:
         """f with gamma(s, f) = v (the designed values); (f, ok)."""
         if self.affine:
-            g0, g1 = self.affine_terms(xi, u)
-            f = solve_small(g1, [v[i] - g0[i] for i in range(4)])
-            return (f, True) if f is not None else (list(guess), False)
+            out = self._linear(*xi, *u, *v) if self._linear is not None else self._linear_flat(*xi, *u, *v)
+            return (out[1:], True) if out[0] > 0.5 else (list(guess), False)
         f = list(guess)
         for _ in range(max_iter):
             out = self._gamma(*xi, *u, *f)
             r = [out[i] - v[i] for i in range(4)]
             if max(abs(x) for x in r) < 1e-9 * (1.0 + max(abs(x) for x in v)):
                 return f, True
-            jac = [list(out[4 + 4 * k: 8 + 4 * k]) for k in range(4)]
+            jac = [out[4:8], out[8:12], out[12:16], out[16:20]]
             step = solve_small(jac, [-x for x in r])
             if step is None:
                 return f, False
@@ -554,12 +761,17 @@ class DerivedLaw:
     hover_f: list[float]  # f at hover [(rad/s)^2]
     w_max: float  # rad/s
     notes: list[str] = field(default_factory=list)
+    native: dict[str, str] = field(default_factory=dict)  # each loop function: "native" or why Python
 
     def describe(self) -> str:
         """One line on how the law was derived (for logs and reports)."""
+        fast = sum(v == "native" for v in self.native.values())
+        why = sorted({v for v in self.native.values() if v != "native"})
+        code = f"{fast} of {len(self.native)} loop functions compiled"
+        code += f" ({'; '.join(why)})" if why else ""
         return (f"outer: {self.outer.method} in {self.outer.mode} mode "
                 f"(unknowns {', '.join(s.name for s in self.outer.unknowns)}); inner: "
-                f"{self.inner.method} solve for f1..f4; hover {self.hover_speed:.1f} rad/s")
+                f"{self.inner.method} solve for f1..f4; hover {self.hover_speed:.1f} rad/s; {code}")
 
 
 _CACHE: dict[tuple, DerivedLaw] = {}
@@ -568,7 +780,7 @@ _CACHE: dict[tuple, DerivedLaw] = {}
 def derive_law(expressions: Mapping[str, sympy.Expr], w_max: float) -> DerivedLaw:
     """Derive (and cache) the control law of a model's six target expressions; UserError if not invertible."""
     exprs = normalise(expressions)
-    key = (tuple(sympy.srepr(exprs[n]) for n in TARGET_NAMES), float(w_max))
+    key = (tuple(sympy.srepr(exprs[n]) for n in TARGET_NAMES), float(w_max), native.enabled())
     if key not in _CACHE:
         _CACHE[key] = _derive(exprs, float(w_max))
     return _CACHE[key]
@@ -604,7 +816,8 @@ def _derive(exprs: dict[str, sympy.Expr], w_max: float) -> DerivedLaw:
     hover_u = [hover] * 4
     hover_f = [4.0 * hover * hover, 0.0, 0.0, 0.0]
 
-    inner = InnerInversion(motor)
+    native.status(clear=True)
+    inner = InnerInversion(motor, hover_u, hover_f)
     _check_inner(inner, motor, rest, hover_u, hover_f)
     outer = OuterInversion(motor, exprs, rest, hover_u, hover_f[0])
     _check_outer(outer, rest, hover_u, hover_f[0])
@@ -612,7 +825,7 @@ def _derive(exprs: dict[str, sympy.Expr], w_max: float) -> DerivedLaw:
     frozen = sorted({s.name for n in TARGET_NAMES for s in motor[n].free_symbols if s in U})
     if frozen:
         notes.append(f"terms odd in {', '.join(frozen)} are evaluated at the measured rotor speeds")
-    return DerivedLaw(outer, inner, gravity, hover, hover_f, w_max, notes)
+    return DerivedLaw(outer, inner, gravity, hover, hover_f, w_max, notes, native.status())
 
 
 def _check_inner(inner: InnerInversion, motor: dict[str, sympy.Expr], xi: list[float], u: list[float],
