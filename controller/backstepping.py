@@ -23,7 +23,6 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
 import sympy
 
 from controller import native
@@ -31,7 +30,7 @@ from controller.allocation import allocate
 from controller.derivation import XI, DerivedLaw, U, derive_law, fast_function, normalise
 from controller.gains import BacksteppingGains, validate_gains
 from controller.outer_loop import OuterLoop
-from controller.plugin import Command, Reference, VehicleState
+from controller.plugin import Command, Reference, VehicleState, as_floats
 from identification.model_file import TARGET_NAMES
 
 NOMINAL_DT = 0.004  # s, the HIL exchange step (250 Hz)
@@ -153,13 +152,6 @@ def rotation(phi: float, theta: float, psi: float) -> list[list[float]]:
             [-st, sf * ct, cf * ct]]
 
 
-def _floats(values: Any) -> list[float]:
-    """A vector as a list of Python floats (math on those is several times faster than on numpy scalars)."""
-    if isinstance(values, np.ndarray):
-        return values.astype(float, copy=False).tolist()
-    return [float(v) for v in values]
-
-
 def _wrap(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
@@ -233,14 +225,14 @@ class BacksteppingController:
     def update(self, t: float, state: VehicleState, reference: Reference) -> Command:
         """Motor speeds [rad/s, PX4 order] in [0, w_max] for the state (NED/FRD) and reference at t [s]."""
         law, g, c = self.law, self.gains, self._c
-        xi = _floats(state.xi)
-        u_meas = _floats(state.rotor_speeds)
+        xi = as_floats(state.xi)
+        u_meas = as_floats(state.rotor_speeds)
         dt = NOMINAL_DT if self._t_prev is None else max(t - self._t_prev, 0.0)
         self._t_prev = t
         pos, vel = xi[0:3], xi[3:6]
         phi, theta, psi = xi[6], xi[7], xi[8]
-        rp, rv, ra = _floats(reference.position), _floats(reference.velocity), _floats(reference.acceleration)
-        rj, rs = _floats(reference.jerk), _floats(reference.snap)
+        rp, rv, ra, rj, rs = (as_floats(v) for v in (reference.position, reference.velocity,
+                                                      reference.acceleration, reference.jerk, reference.snap))
         on_ground = pos[2] > -g.ground_clearance
         dphi, dtheta, dpsi = law.inner.euler_angle_rates(xi)
         if on_ground:

@@ -696,11 +696,8 @@ class InnerInversion:
         unit.export("gamma", 20, 20)
         twins["gamma"] = ("inner gamma, dgamma/df", self._gamma, native.points_near(_sample(args + list(F),
                                                                                               hover)))
-        self._rates = _program(unit, "rates", list(XI), self.euler_rates)
-        unit.export("rates", 12, 3)
-        twins["rates"] = ("Euler angle rates", self._rates, native.points_near([0.1] * 12))
         fns = native.build_unit(unit, twins)
-        self._gamma, self._rates = fns["gamma"], fns["rates"]
+        self._gamma = fns["gamma"]
         self._linear = None
         if self.affine and fns["inner_linear"] is not self._linear_flat:
             self._linear = fns["inner_linear"]
@@ -712,9 +709,14 @@ class InnerInversion:
         f = solve_small(g1, [values[16 + i] - g0[i] for i in range(4)])
         return [0.0] + [math.nan] * 4 if f is None else [1.0, *f]
 
-    def euler_angle_rates(self, xi: list[float]) -> list[float]:
-        """(phi', theta', psi') [rad/s] = R(phi, theta) w."""
-        return list(self._rates(*xi))
+    @staticmethod
+    def euler_angle_rates(xi: list[float]) -> list[float]:
+        """(phi', theta', psi') [rad/s] = R(phi, theta) w: euler_rate_matrix written out (for speed)."""
+        sf, cf = math.sin(xi[6]), math.cos(xi[6])
+        ct = math.cos(xi[7])
+        wy, wz = xi[10], xi[11]
+        c = (sf * wy + cf * wz) / ct
+        return [xi[9] + c * math.sin(xi[7]), cf * wy - sf * wz, c]
 
     def gamma(self, xi: list[float], u: list[float], f: list[float]) -> list[float]:
         """gamma_5..8 [m/s^2, rad/s^2]: z'' and the Euler angle accelerations under f, odd u terms at u."""

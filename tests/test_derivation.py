@@ -224,3 +224,14 @@ def test_solve_small_against_numpy():
             b = rng.normal(size=n)
             assert np.allclose(solve_small(a.tolist(), b.tolist()), np.linalg.solve(a, b), rtol=1e-8)
         assert solve_small(np.ones((n, n)).tolist(), list(range(n))) is None
+
+
+def test_written_out_euler_rates_equal_the_papers_matrix():
+    """InnerInversion.euler_angle_rates (plain floats, in the loop) is R(phi, theta) w (euler_rate_matrix)."""
+    from controller.derivation import InnerInversion, euler_rate_matrix
+
+    rng = np.random.default_rng(4)
+    for phi, theta, wx, wy, wz in rng.uniform(-1.2, 1.2, (50, 5)):
+        r = np.array(euler_rate_matrix(sympy.Float(phi), sympy.Float(theta)).evalf(), dtype=float)
+        xi = [0.0] * 6 + [phi, theta, 0.3, wx, wy, wz]
+        assert InnerInversion.euler_angle_rates(xi) == pytest.approx(r @ [wx, wy, wz], rel=1e-12, abs=1e-12)
