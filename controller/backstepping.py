@@ -62,12 +62,13 @@ class ModelErrorObserver:
                  max_accel: float, max_angular: float, hover_speed: float = 0.0):
         names = TARGET_NAMES if angular_rate > 0.0 else TARGET_NAMES[:3]
         self._accel = None
-        self.code = "off"  # its model function: "native", why it is Python, or off
+        self.code = "off"  # its model function: "compiled", "python (why)", or off
         if rate > 0.0 or angular_rate > 0.0:
             norm = normalise(expressions)
             self._accel = fast_function("model (observer)", list(XI) + list(U), [norm[n] for n in names],
                                         dict.fromkeys(U, hover_speed))
-            self.code = native.status().get("model (observer)", self.code)
+            state = native.status().get("model (observer)", "python")
+            self.code = "compiled" if state == "native" else f"python ({state})"
         self._rates = ((rate,) * 3 + (angular_rate,) * 3)[: len(names)]
         self._limits = ((max_accel,) * 3 + (max_angular,) * 3)[: len(names)]
         self._dt = -1.0

@@ -147,6 +147,7 @@ class TrackingRow:
     crashed: bool = False
     wall_s: float = 0.0
     link_lost: bool = False  # the SITL stopped answering: a failure of the run, not of the controller
+    law: str = ""  # how the controller was built (its describe(): the derived law), '' if it says nothing
 
 
 def flight_dir_name(label: str, case: str, state: str) -> str:
@@ -186,9 +187,11 @@ def fly_tracking(spec: ControllerSpec, case: str, *, duration: float, out: Path,
             break
         print(f"  {spec.label} {case}: the SITL said {result.sitl_messages}; flying it again", flush=True)
     message = result.message or "; ".join(result.sitl_messages)
+    describe = getattr(controller, "describe", None)
     return TrackingRow(spec.label, case, state, result.metrics, message, flight_dir, result.completed,
                        result.crashed, time.perf_counter() - start,
-                       link_lost=not result.completed and not result.crashed)
+                       link_lost=not result.completed and not result.crashed,
+                       law=describe() if describe is not None else "")
 
 
 # --------------------------------------------------------------------------------------------------------

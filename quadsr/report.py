@@ -404,7 +404,7 @@ def versions() -> dict[str, str]:
 
 def checks(run: PaperRun) -> list[tuple[str, bool | None]]:
     """The issue's floors on this run: (what, passed; None when the stage did not run)."""
-    from quadsr.pipeline import CASES, LEARNED_LABEL
+    from quadsr.pipeline import CASES, LEARNED_LABEL, TRUE_LABEL
 
     out: list[tuple[str, bool | None]] = []
     v = run.validation
@@ -418,6 +418,19 @@ def checks(run: PaperRun) -> list[tuple[str, bool | None]]:
         ok = None if run.stage("track").status != "done" else \
             bool(m is not None and m.rms_after_5s_m is not None and m.rms_after_5s_m < 0.01 and m.completed)
         out.append((f"backstepping on the learned model, {case}: RMS after 5 s < 1 cm", ok))
+        ref = by.get((TRUE_LABEL, case))
+        ratio_ok = ok
+        if ok:
+            ratio_ok = bool(ref is not None and ref.rms_after_5s_m
+                            and m.rms_after_5s_m <= 1.2 * ref.rms_after_5s_m)
+        out.append((f"backstepping on the learned model, {case}: RMS after 5 s <= 1.2 x the true-model "
+                    "controller's", ratio_ok))
+        out.append((f"backstepping on the learned model, {case}: median control step < 200 us",
+                    None if ok is None else bool(m is not None and m.step_median_us < 200.0)))
+    m = by.get((LEARNED_LABEL, "case2"))
+    out.append(("backstepping on the learned model, case2: within 5 cm of the reference by 4 s",
+                None if run.stage("track").status != "done" else
+                bool(m is not None and m.settle_time_s is not None and m.settle_time_s <= 4.0)))
     return out
 
 
@@ -573,6 +586,10 @@ def report_markdown(run: PaperRun) -> str:
                   "'RMS after 5 s' leaves out the take-off from 3.7 m (Case I) and 4.5 m (Case II) away.", "",
                   tracking_markdown(run.tracking, link_base=run.out),
                   f"CSV: {_link(run, 'tracking_csv', 'tracking.csv')}.", ""]
+        laws = {r.label: r.law for r in run.tracking if r.law}
+        if laws:
+            lines += ["How each model-based controller was built:", ""]
+            lines += [f"- {label}: {law}" for label, law in laws.items()] + [""]
     else:
         lines.append(_not_yet(run, "track"))
     if "fig4" in run.files:

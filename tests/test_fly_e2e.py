@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -58,6 +59,9 @@ def test_fly_case2_against_the_sitl_ends_on_the_reference(start_sitl, true_model
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr and "warning" not in proc.stdout
+    # how the law was built, with the loop functions compiled (this machine has a C compiler)
+    assert re.search(r"quadsr fly: law: outer: newton in thrust mode .* (\d) of \1 loop functions compiled; "
+                     r"model-error observer: compiled", proc.stdout), proc.stdout
     for name in ("flight.tlog", "steps.csv", "metrics.md", "metrics.csv", "tracking.png", "path3d.png"):
         assert (out / name).stat().st_size > 0, name
     for name in ("tracking.png", "path3d.png"):

@@ -179,9 +179,11 @@ def test_controller_gives_the_same_commands_native_or_python(which, vehicle, cac
     states, fast = _commands(model, vehicle, "case1", monkeypatch, True)
     _, slow = _commands(model, vehicle, "case1", monkeypatch, False)
     assert "0 of" in slow.describe() and "QUADSR_NATIVE=0" in slow.describe()
+    assert slow.describe().endswith("model-error observer: python (QUADSR_NATIVE=0)")
     if native.compiler() is not None:
         n = len(fast.law.native)
         assert f"{n} of {n} loop functions compiled" in fast.describe(), fast.describe()
+        assert fast.describe().endswith("model-error observer: compiled")
         assert fast.law.outer is not slow.law.outer
     fast.reset()
     slow.reset()

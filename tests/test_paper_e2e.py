@@ -143,6 +143,13 @@ def test_quick_run_writes_the_report_figures_models_and_logs(quick_run):
     tracking = _table_rows(_section(report, "## Tracking"))
     assert {(r[0], r[1]) for r in tracking} == {(c, k) for c in CONTROLLERS for k in ("case1", "case2")}
     assert all(r[12] == "yes" for r in tracking), tracking
+    # the floors, checked in the report (the step time depends on the machine's load: listed)
+    for case in ("case1", "case2"):
+        assert (f"- PASS: backstepping on the learned model, {case}: RMS after 5 s <= 1.2 x the true-model "
+                "controller's") in report
+        assert re.search(rf"- (PASS|FAIL): backstepping on the learned model, {case}: median control step "
+                         "< 200 us", report)
+    assert "- PASS: backstepping on the learned model, case2: within 5 cm of the reference by 4 s" in report
     assert "| quadsr |" in report and "| pyoperon |" in report and "seed: 0" in report
 
     # every figure linked from the report exists and is a valid PNG
