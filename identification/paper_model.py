@@ -2,7 +2,7 @@
 
 xi_4..6 = vx, vy, vz (NED m/s), xi_7..9 = phi, theta, psi (rad), xi_10..12 = wx, wy, wz (FRD rad/s),
 u1..u4 rotor speeds (rad/s). zeta_4..6 are x'', y'', z'' and zeta_10..12 are wx', wy', wz'; zeta_7..9 are the
-known Euler-angle rates. Its gyroscopic signs are flipped against Euler's equations (see quadsr.report).
+known Euler-angle rates. Its gyroscopic signs are flipped against Euler's equations (see quadsr.equations).
 """
 
 from __future__ import annotations

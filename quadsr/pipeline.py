@@ -377,7 +377,7 @@ class PaperPipeline:
         return f"{len(r.tracking)} flights"
 
     def _figures(self) -> str:
-        from quadsr.report import paths3d_figure, tracking_overlay_figure
+        from quadsr.figures import paths3d_figure, tracking_overlay_figure
 
         r = self.run
         r.files["fig4"] = tracking_overlay_figure(r.tracking, "case1", r.out / "fig4_case1_tracking.png")
