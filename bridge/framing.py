@@ -187,13 +187,33 @@ def _make_spec(cls: type) -> MessageSpec:
     )
 
 
+# Specs are generated on first use of a message id: all ~230 classes up front cost every process ~0.13 s at
+# import, and a process meets a dozen of them.
 SPECS_BY_ID: dict[int, MessageSpec] = {}
 SPECS_BY_CLASS: dict[type, MessageSpec] = {}
-for _msg_id, _cls in mavlink.mavlink_map.items():
-    _spec = _make_spec(_cls)
-    SPECS_BY_ID[_msg_id] = _spec
-    SPECS_BY_CLASS[_cls] = _spec
-_EXTRA_BYTES = {msg_id: bytes([spec.crc_extra]) for msg_id, spec in SPECS_BY_ID.items()}
+_EXTRA_BYTES = {msg_id: bytes([cls.crc_extra]) for msg_id, cls in mavlink.mavlink_map.items()}
+
+
+def spec_for_id(msg_id: int) -> MessageSpec | None:
+    """The spec of a common-dialect message id (generated on first use), None for an unknown id."""
+    spec = SPECS_BY_ID.get(msg_id)
+    if spec is None:
+        cls = mavlink.mavlink_map.get(msg_id)
+        if cls is None:
+            return None
+        spec = _make_spec(cls)
+        SPECS_BY_ID[msg_id] = SPECS_BY_CLASS[cls] = spec
+    return spec
+
+
+def spec_for(cls: type) -> MessageSpec:
+    """The spec of a pymavlink message class (generated on first use)."""
+    spec = SPECS_BY_CLASS.get(cls)
+    if spec is None:
+        spec = spec_for_id(cls.id)
+        if spec is None or spec.cls is not cls:
+            raise KeyError(f"{cls.__name__} is not a message of the common dialect")
+    return spec
 
 # Used only for classes with char fields (STATUSTEXT, PARAM_*, ...): pymavlink packs them (it handles the
 # string encodings), and the payload is reframed here.
@@ -202,7 +222,7 @@ _PLAIN_MAV = mavlink.MAVLink(None, 0, 0)
 
 def payload_bytes(msg: Any) -> bytes:
     """The wire payload of a message, trailing zeros stripped as MAVLink 2 requires (at least 1 byte)."""
-    spec = SPECS_BY_CLASS[type(msg)]
+    spec = SPECS_BY_CLASS.get(type(msg)) or spec_for(type(msg))
     if spec.payload_of is not None:
         payload = spec.payload_of(msg)
     else:
@@ -215,7 +235,7 @@ def pack_frame(
     msg: Any, seq: int, system_id: int, component_id: int, signing: Signing | None = None
 ) -> bytes:
     """One MAVLink 2 frame for a pymavlink message (signed when signing is given)."""
-    spec = SPECS_BY_CLASS[type(msg)]
+    spec = SPECS_BY_CLASS.get(type(msg)) or spec_for(type(msg))
     payload = payload_bytes(msg)
     msg_id = spec.msg_id
     body = _HEADER_V2.pack(
@@ -373,7 +393,7 @@ def split_datagram(
             stats.garbage_bytes += 1
             i += 1
             continue
-        spec = specs.get(msg_id)
+        spec = specs.get(msg_id) or spec_for_id(msg_id)
         if spec is None:
             if resync:
                 stats.garbage_bytes += 1

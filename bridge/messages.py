@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from bridge.framing import SPECS_BY_CLASS, decode_frame, unpack_frame
+from bridge.framing import decode_frame, spec_for, unpack_frame
 
 G0 = 9.80665  # m/s^2, the g PX4 uses to clamp accelerometer readings
 ACCEL_LIMIT = 16.0 * G0  # m/s^2
@@ -50,12 +50,12 @@ Heartbeat = mavlink.MAVLink_heartbeat_message
 _ZERO3 = (0.0, 0.0, 0.0)
 _ZERO16 = [0.0] * 16
 # Fast constructors (same objects as the pymavlink classes build; see bridge.framing).
-_make_hil_sensor = SPECS_BY_CLASS[HilSensor].make
-_make_hsq = SPECS_BY_CLASS[HilStateQuaternion].make
-_make_lpn = SPECS_BY_CLASS[LocalPositionNed].make
-_make_raw_rpm = SPECS_BY_CLASS[RawRpm].make
-_make_hil_gps = SPECS_BY_CLASS[HilGps].make
-_make_hac = SPECS_BY_CLASS[HilActuatorControls].make
+_make_hil_sensor = spec_for(HilSensor).make
+_make_hsq = spec_for(HilStateQuaternion).make
+_make_lpn = spec_for(LocalPositionNed).make
+_make_raw_rpm = spec_for(RawRpm).make
+_make_hil_gps = spec_for(HilGps).make
+_make_hac = spec_for(HilActuatorControls).make
 _ndarray = np.ndarray
 
 
@@ -368,7 +368,7 @@ for _cls, _order in _WIRE_ORDERS.items():
     if list(_cls.ordered_fieldnames) != _order.split():
         raise ImportError(f"unexpected wire order of {_cls.msgname}: {_cls.ordered_fieldnames}")
 
-_values_of = {cls: SPECS_BY_CLASS[cls].values_of for cls in _WIRE_ORDERS}
+_values_of = {cls: spec_for(cls).values_of for cls in _WIRE_ORDERS}
 ID_HIL_SENSOR = HilSensor.id
 ID_HIL_STATE_QUATERNION = HilStateQuaternion.id
 ID_LOCAL_POSITION_NED = LocalPositionNed.id

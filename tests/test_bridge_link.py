@@ -11,7 +11,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from bridge import messages as M
 from bridge.errors import UserError
-from bridge.framing import SPECS_BY_CLASS, pack_frame, parse_datagram
+from bridge.framing import pack_frame, parse_datagram, spec_for
 from bridge.link import Endpoint, UdpLink, parse_endpoint
 from bridge.stats import LinkStats
 
@@ -94,7 +94,7 @@ def test_frames_are_byte_identical_to_pymavlink_and_decode_to_equal_messages():
 
 
 def test_fast_constructor_equals_pymavlink_constructor():
-    make = SPECS_BY_CLASS[mavlink.MAVLink_hil_sensor_message].make
+    make = spec_for(mavlink.MAVLink_hil_sensor_message).make
     args = (4000, 0.1, 0.2, -9.8, 0.01, 0.02, 0.03, 0.2, 0.0, 0.4, 1013.25, 0.0, 10.0, 25.0, 0x1FFF, 0)
     assert make(*args).to_dict() == mavlink.MAVLink_hil_sensor_message(*args).to_dict()
     assert make(*args).get_type() == "HIL_SENSOR"
@@ -233,3 +233,14 @@ def test_drain_reads_every_queued_datagram():
     finally:
         server.close()
         client.close()
+
+
+def test_every_common_message_gets_a_spec_on_first_use_and_unknown_ids_none():
+    """Specs are generated lazily (import stays cheap); every class of the dialect still gets one."""
+    from bridge.framing import SPECS_BY_ID, spec_for_id
+
+    for msg_id, cls in mavlink.mavlink_map.items():
+        spec = spec_for_id(msg_id)
+        assert spec is not None and spec.cls is cls and spec.msg_id == msg_id
+        assert spec_for(cls) is spec and SPECS_BY_ID[msg_id] is spec
+    assert spec_for_id(0xFFFFFF) is None
