@@ -70,21 +70,20 @@ def _yaw_scale(t: float, att: list[float], yaw: list[float], q4max: float) -> fl
     return max(lo, min(hi, 1.0))
 
 
-def allocate(f: np.ndarray | list[float], w_max: float) -> Allocation:
-    """Rotor speeds [rad/s] in [0, w_max] realising f [(rad/s)^2], with roll/pitch > thrust > yaw priority."""
+def allocate_floats(f: np.ndarray | list[float], w_max: float) -> tuple[list[float], list[float], str]:
+    """allocate() without its arrays, for the control loop: (squared speeds [(rad/s)^2], speeds, stage)."""
     t, r, p, y = f
     t, r, p, y = float(t), float(r), float(p), float(y)
-    if not (math.isfinite(t) and math.isfinite(r) and math.isfinite(p) and math.isfinite(y)):
+    isfinite = math.isfinite
+    stage_bad = not (isfinite(t) and isfinite(r) and isfinite(p) and isfinite(y))
+    if stage_bad:
         t, r, p, y = 0.0, 0.0, 0.0, 0.0
-        stage_bad = True
-    else:
-        stage_bad = False
     qmax = w_max * w_max
-    q4max = 4.0 * qmax
     q = _q(t, r, p, y)
-    stage = "none"
-    if stage_bad or not (0.0 <= q[0] <= qmax and 0.0 <= q[1] <= qmax and 0.0 <= q[2] <= qmax
-                         and 0.0 <= q[3] <= qmax):
+    q0, q1, q2, q3 = q
+    stage = "none"  # and q within [0, w_max^2] as it stands
+    if stage_bad or not (0.0 <= q0 <= qmax and 0.0 <= q1 <= qmax and 0.0 <= q2 <= qmax and 0.0 <= q3 <= qmax):
+        q4max = 4.0 * qmax
         att = [ROLL_SIGN[i] * r + PITCH_SIGN[i] * p for i in range(4)]
         yaw = [YAW_SIGN[i] * y for i in range(4)]
         lam = _yaw_scale(t, att, yaw, q4max)
@@ -108,9 +107,15 @@ def allocate(f: np.ndarray | list[float], w_max: float) -> Allocation:
                 y = 0.0
         if stage_bad:
             stage = "attitude"
-        q = _q(t, r, p, y)
-    sq = [0.0 if v < 0.0 else qmax if v > qmax else v for v in q]
-    speeds = [math.sqrt(v) for v in sq]
+        q = [0.0 if v < 0.0 else qmax if v > qmax else v for v in _q(t, r, p, y)]
+        q0, q1, q2, q3 = q
+    sqrt = math.sqrt
+    return q, [sqrt(q0), sqrt(q1), sqrt(q2), sqrt(q3)], stage
+
+
+def allocate(f: np.ndarray | list[float], w_max: float) -> Allocation:
+    """Rotor speeds [rad/s] in [0, w_max] realising f [(rad/s)^2], with roll/pitch > thrust > yaw priority."""
+    sq, speeds, stage = allocate_floats(f, w_max)
     applied = [
         sq[0] + sq[1] + sq[2] + sq[3],
         -sq[0] + sq[1] + sq[2] - sq[3],

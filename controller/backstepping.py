@@ -23,10 +23,11 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 import sympy
 
 from controller import native
-from controller.allocation import allocate
+from controller.allocation import allocate_floats
 from controller.derivation import XI, DerivedLaw, U, derive_law, fast_function, normalise
 from controller.gains import BacksteppingGains, validate_gains
 from controller.outer_loop import OuterLoop
@@ -72,7 +73,7 @@ class ModelErrorObserver:
         self._rates = ((rate,) * 3 + (angular_rate,) * 3)[: len(names)]
         self._limits = ((max_accel,) * 3 + (max_angular,) * 3)[: len(names)]
         self._dt = -1.0
-        self._gains: list[float] = []
+        self._filters: list[tuple[int, float, float]] = []  # (index, gain 1 - e^(-rate dt) > 0, limit) at _dt
         self.reset()
 
     def reset(self) -> None:
@@ -97,50 +98,56 @@ class ModelErrorObserver:
         start = self._start
         self._start = None
         d = self.value
-        r = None
+        a = None
         if start is not None and dt > 0.0:
             pv, pa, u = start
             try:
                 a = self._accel(*xi, *u)
             except (ValueError, ZeroDivisionError, OverflowError):
-                a = None
-            if a is not None:
-                if dt != self._dt:
-                    self._dt = dt
-                    self._gains = [1.0 - math.exp(-k * dt) for k in self._rates]
-                inv = 1.0 / dt
-                mx = (xi[3] - pv[0]) * inv - 0.5 * (a[0] + pa[0])
-                my = (xi[4] - pv[1]) * inv - 0.5 * (a[1] + pa[1])
-                mz = (xi[5] - pv[2]) * inv - 0.5 * (a[2] + pa[2])
-                r = rotation(xi[6], xi[7], xi[8])
-                meas = [r[0][0] * mx + r[1][0] * my + r[2][0] * mz,  # NED -> FRD: R^T
-                        r[0][1] * mx + r[1][1] * my + r[2][1] * mz,
-                        r[0][2] * mx + r[1][2] * my + r[2][2] * mz]
-                if len(a) == 6:
-                    meas += [(xi[9 + i] - pv[3 + i]) * inv - 0.5 * (a[3 + i] + pa[3 + i]) for i in range(3)]
-                for i, k in enumerate(self._gains):
-                    if k > 0.0:
-                        lim = self._limits[i]
-                        x = d[i] + k * (meas[i] - d[i])
-                        if x > lim:
-                            x = lim
-                        elif x < -lim:
-                            x = -lim
-                        elif x != x:  # NaN: the model has no value here; keep the estimate
-                            continue
-                        d[i] = x
-        if not any(d):  # off, or just off the ground
+                pass
+        if a is None and not any(d):  # off, just off the ground, or nothing to update an estimate of 0 with
             return [0.0] * 6, [0.0, 0.0, 0.0]
-        if r is None:
-            r = rotation(xi[6], xi[7], xi[8])
-        r0, r1, r2 = r
+        # rotation(phi, theta, psi) written out: this runs every control step
+        sf, cf = math.sin(xi[6]), math.cos(xi[6])
+        st, ct = math.sin(xi[7]), math.cos(xi[7])
+        sp, cp = math.sin(xi[8]), math.cos(xi[8])
+        r00, r01, r02 = ct * cp, sf * st * cp - cf * sp, cf * st * cp + sf * sp
+        r10, r11, r12 = ct * sp, sf * st * sp + cf * cp, cf * st * sp - sf * cp
+        r20, r21, r22 = -st, sf * ct, cf * ct
+        if a is not None:
+            if dt != self._dt:
+                self._dt = dt
+                gains = [1.0 - math.exp(-k * dt) for k in self._rates]
+                self._filters = [(i, k, self._limits[i]) for i, k in enumerate(gains) if k > 0.0]
+            inv = 1.0 / dt
+            mx = (xi[3] - pv[0]) * inv - 0.5 * (a[0] + pa[0])
+            my = (xi[4] - pv[1]) * inv - 0.5 * (a[1] + pa[1])
+            mz = (xi[5] - pv[2]) * inv - 0.5 * (a[2] + pa[2])
+            meas = [r00 * mx + r10 * my + r20 * mz,  # NED -> FRD: R^T
+                    r01 * mx + r11 * my + r21 * mz,
+                    r02 * mx + r12 * my + r22 * mz]
+            if len(a) == 6:
+                meas += [(xi[9] - pv[3]) * inv - 0.5 * (a[3] + pa[3]),
+                         (xi[10] - pv[4]) * inv - 0.5 * (a[4] + pa[4]),
+                         (xi[11] - pv[5]) * inv - 0.5 * (a[5] + pa[5])]
+            for i, k, lim in self._filters:
+                x = d[i] + k * (meas[i] - d[i])
+                if x > lim:
+                    x = lim
+                elif x < -lim:
+                    x = -lim
+                elif x != x:  # NaN: the model has no value here; keep the estimate
+                    continue
+                d[i] = x
+            if not any(d):
+                return [0.0] * 6, [0.0, 0.0, 0.0]
         d0, d1, d2 = d[0], d[1], d[2]
         wx, wy, wz = xi[9], xi[10], xi[11]
         c0, c1, c2 = wy * d2 - wz * d1, wz * d0 - wx * d2, wx * d1 - wy * d0  # w x d_b
-        return ([r0[0] * d0 + r0[1] * d1 + r0[2] * d2, r1[0] * d0 + r1[1] * d1 + r1[2] * d2,
-                 r2[0] * d0 + r2[1] * d1 + r2[2] * d2, d[3], d[4], d[5]],
-                [r0[0] * c0 + r0[1] * c1 + r0[2] * c2, r1[0] * c0 + r1[1] * c1 + r1[2] * c2,
-                 r2[0] * c0 + r2[1] * c1 + r2[2] * c2])
+        return ([r00 * d0 + r01 * d1 + r02 * d2, r10 * d0 + r11 * d1 + r12 * d2,
+                 r20 * d0 + r21 * d1 + r22 * d2, d[3], d[4], d[5]],
+                [r00 * c0 + r01 * c1 + r02 * c2, r10 * c0 + r11 * c1 + r12 * c2,
+                 r20 * c0 + r21 * c1 + r22 * c2])
 
 
 def rotation(phi: float, theta: float, psi: float) -> list[list[float]]:
@@ -192,18 +199,21 @@ class BacksteppingController:
         self._kz = (1.0 + c[0] * c[4], c[0] + c[4])  # z error dynamics e'' + kz1 e' + kz0 e = 0
         self._tilt = math.radians(self.gains.max_tilt_deg)
         self._tilt_ground = math.radians(self.gains.ground_tilt_deg)
-        # how each outer-inversion parameter moves in time: 0 fixed, 1 position, 2 velocity, 3 yaw
-        kinds = []
+        # worked out once, not every step (gains are frozen)
+        self._angle_limit = self._tilt + 0.2  # rad, the outer Newton's angle clamp
+        self._analytic = g.derivative_mode == "analytic"
+        self._frozen = self.law.outer.mode == "frozen"
+        # each outer-inversion parameter's (p', p'') as an index into the pairs update() builds:
+        # 0-2 position (v, a), 3-5 velocity (a, a'), 6 yaw (psi', psi''), 7 fixed (0, 0)
+        index = []
         for name in self.law.outer.param_names:
             if name in ("x", "y", "z"):
-                kinds.append((1, "xyz".index(name)))
+                index.append("xyz".index(name))
             elif name in ("vx", "vy", "vz"):
-                kinds.append((2, ("vx", "vy", "vz").index(name)))
-            elif name == "psi":
-                kinds.append((3, 0))
+                index.append(3 + ("vx", "vy", "vz").index(name))
             else:
-                kinds.append((0, 0))
-        self._param_kinds = kinds
+                index.append(6 if name == "psi" else 7)
+        self._param_rate_index = index
         self.reset()
 
     def describe(self) -> str:
@@ -225,53 +235,75 @@ class BacksteppingController:
     # ------------------------------------------------------------------------------------------------------
     def update(self, t: float, state: VehicleState, reference: Reference) -> Command:
         """Motor speeds [rad/s, PX4 order] in [0, w_max] for the state (NED/FRD) and reference at t [s]."""
-        law, g, c = self.law, self.gains, self._c
+        law, g = self.law, self.gains
+        c0, c1, c2, c3, c4, c5, c6, c7 = self._c
         xi = as_floats(state.xi)
         u_meas = as_floats(state.rotor_speeds)
-        dt = NOMINAL_DT if self._t_prev is None else max(t - self._t_prev, 0.0)
+        if self._t_prev is None:
+            dt = NOMINAL_DT
+        else:
+            dt = t - self._t_prev
+            if 0.0 > dt:  # max(dt, 0.0), keeping a NaN as max() does
+                dt = 0.0
         self._t_prev = t
-        pos, vel = xi[0:3], xi[3:6]
+        z, vz = xi[2], xi[5]
         phi, theta, psi = xi[6], xi[7], xi[8]
-        rp, rv, ra, rj, rs = (as_floats(v) for v in (reference.position, reference.velocity,
-                                                      reference.acceleration, reference.jerk, reference.snap))
-        on_ground = pos[2] > -g.ground_clearance
-        dphi, dtheta, dpsi = law.inner.euler_angle_rates(xi)
+        wx, wy, wz = xi[9], xi[10], xi[11]
+        rp = as_floats(reference.position)
+        rv = as_floats(reference.velocity)
+        ra = as_floats(reference.acceleration)
+        rj = as_floats(reference.jerk)
+        rs = as_floats(reference.snap)
+        on_ground = z > -g.ground_clearance
+        # (phi', theta', psi') = R(phi, theta) w, as InnerInversion.euler_angle_rates (its trig reused below)
+        sf, cf = math.sin(phi), math.cos(phi)
+        st, ct = math.sin(theta), math.cos(theta)
+        dpsi = (sf * wy + cf * wz) / ct
+        dphi, dtheta = wx + dpsi * st, cf * wy - sf * wz
+        observer = self.observer
         if on_ground:
-            self.observer.reset()
-        d, d_rate = self.observer.end_step(dt, xi)
+            observer.reset()
+        d, d_rate = observer.end_step(dt, xi)
+        d0, d1, d2, d3, d4, d5 = d
 
         # z and psi channels (their designed second derivatives also feed the outer solve)
         zd, zd1, zd2 = rp[2], rv[2], ra[2]
-        v5 = designed_gamma(c[0], c[4], zd, zd1, zd2, pos[2], vel[2]) - d[2]
-        e1, de1 = zd - pos[2], zd1 - vel[2]
+        v5 = designed_gamma(c0, c4, zd, zd1, zd2, z, vz) - d2
+        e1, de1 = zd - z, zd1 - vz
         k0, k1 = self._kz
         dde1 = -(k0 * e1 + k1 * de1)
         v5_1 = rj[2] + k0 * de1 + k1 * dde1
         v5_2 = rs[2] + k0 * dde1 + k1 * -(k0 * de1 + k1 * dde1)
-        psid = float(reference.yaw)
-        e4 = _wrap(psid - psi)
-        v8 = designed_gamma(c[3], c[7], psi + e4, float(reference.yaw_rate),
+        e4 = _wrap(float(reference.yaw) - psi)
+        v8 = designed_gamma(c3, c7, psi + e4, float(reference.yaw_rate),
                             float(reference.yaw_acceleration), psi, dpsi)
 
         # outer loop: desired acceleration, then the model inversion for phi_d, theta_d
         # the model is asked for the design minus its error d, so the design's derivatives lose d's rate
-        cmd = self.outer_loop.update(dt, pos, vel, rp, rv, ra, rj, rs, (v5, v5_1 - d_rate[2], v5_2),
-                                     on_ground, (d[0], d[1]), (d_rate[0], d_rate[1]))
+        accel, accel1, accel2, limited, integral = self.outer_loop.update_flat(
+            dt, xi[0], xi[1], xi[3], xi[4], rp, rv, ra, rj, rs, v5, v5_1 - d_rate[2], v5_2, on_ground,
+            d0, d1, d_rate[0], d_rate[1])
+        outer = law.outer
         u_outer = u_meas
-        if law.outer.mode == "frozen" and sum(v * v for v in u_meas) < 0.5 * law.hover_f[0]:
+        if self._frozen and (u_meas[0] * u_meas[0] + u_meas[1] * u_meas[1] + u_meas[2] * u_meas[2]
+                             + u_meas[3] * u_meas[3]) < 0.5 * law.hover_f[0]:
             u_outer = [law.hover_speed] * 4  # spinning up on the ground: freeze at hover, not at ~0
         # warm start: last solution moved along its own derivatives (one Newton step then usually suffices)
-        guess = [self._q[i] + (self._qd[i] + 0.5 * self._qdd[i] * dt) * dt for i in range(law.outer.n)]
-        sol = law.outer.solve(cmd.accel, xi, u_outer, guess, max_iter=g.newton_iterations,
-                              angle_limit=self._tilt + 0.2)
-        outer_ok = sol.ok and math.isfinite(sol.phi) and math.isfinite(sol.theta)
+        q, qd, qdd = self._q, self._qd, self._qdd
+        guess = [q[i] + (qd[i] + 0.5 * qdd[i] * dt) * dt for i in range(outer.n)]
+        sol = outer.solve(accel, xi, u_outer, guess, max_iter=g.newton_iterations,
+                          angle_limit=self._angle_limit)
+        phid, thetad = sol.phi, sol.theta
+        outer_ok = sol.ok and math.isfinite(phid) and math.isfinite(thetad)
         if outer_ok:
-            q = [sol.phi, sol.theta, sol.f1][: law.outer.n]
+            q = [phid, thetad, sol.f1] if outer.n == 3 else [phid, thetad]
         else:
             q = list(self._q)
+            phid, thetad = q[0], q[1]
+        self._q = q
         tilt_limit = self._tilt_ground if on_ground else self._tilt
-        phid, thetad = q[0], q[1]
-        tilt = math.acos(min(1.0, math.cos(phid) * math.cos(thetad)))
+        cos_tilt = math.cos(phid) * math.cos(thetad)
+        tilt = math.acos(cos_tilt if cos_tilt < 1.0 else 1.0)
         tilt_clamped = tilt > tilt_limit
         if tilt_clamped:
             # scale both angles so the tilt acos(cos phi cos theta) is the limit (converges in a few steps)
@@ -282,85 +314,70 @@ class BacksteppingController:
                 if tilt <= tilt_limit:
                     break
             phid, thetad = phid * k, thetad * k
-        self._q = q
 
         # phi_d', phi_d'', theta_d', theta_d''
-        if g.derivative_mode == "analytic":
-            d1 = d2 = None
+        if self._analytic:
+            rates = None
             if outer_ok and not tilt_clamped:
                 # the velocity parameters move with the vehicle's acceleration: the request plus what the
                 # model misses (d), not the model's request alone
-                acc = [cmd.accel[i] + d[i] for i in range(3)]
-                p1, p2 = self._param_rates(vel, acc, cmd.accel_rate, dpsi, v8)
-                r = law.outer.rates(q, xi, u_outer, cmd.accel_rate, cmd.accel_rate2, p1, p2)
-                if r is not None:
-                    d1, d2 = r
-            if d1 is None or d2 is None:
-                d1, d2 = [0.0] * law.outer.n, [0.0] * law.outer.n
-            self._qd, self._qdd = d1, d2
-            dphid, dthetad, ddphid, ddthetad = d1[0], d1[1], d2[0], d2[1]
+                a0, a1, a2 = accel[0] + d0, accel[1] + d1, accel[2] + d2
+                first = (xi[3], xi[4], vz, a0, a1, a2, dpsi, 0.0)  # see _param_rate_index
+                second = (a0, a1, a2, accel1[0], accel1[1], accel1[2], v8, 0.0)
+                index = self._param_rate_index
+                rates = outer.rates(q, xi, u_outer, accel1, accel2, [first[i] for i in index],
+                                    [second[i] for i in index])
+            if rates is None:
+                rates = [0.0] * outer.n, [0.0] * outer.n
+            qd, qdd = self._qd, self._qdd = rates
+            dphid, dthetad, ddphid, ddthetad = qd[0], qd[1], qdd[0], qdd[1]
         else:
             dphid, ddphid, dthetad, ddthetad = self._filter(phid, thetad, dt)
 
-        v6 = designed_gamma(c[1], c[5], phid, dphid, ddphid, phi, dphi)
-        v7 = designed_gamma(c[2], c[6], thetad, dthetad, ddthetad, theta, dtheta)
-        if d[3] or d[4] or d[5]:
-            ew = law.inner.euler_angle_rates(xi[:9] + d[3:6])  # R(phi, theta) d_w: d_w in Euler angles
-            v6, v7, v8 = v6 - ew[0], v7 - ew[1], v8 - ew[2]
-        f, inner_ok = law.inner.solve([v5, v6, v7, v8], xi, u_meas, self._f, max_iter=g.newton_iterations)
-        if not inner_ok or not all(math.isfinite(v) for v in f):
+        v6 = designed_gamma(c1, c5, phid, dphid, ddphid, phi, dphi)
+        v7 = designed_gamma(c2, c6, thetad, dthetad, ddthetad, theta, dtheta)
+        if d3 or d4 or d5:
+            # R(phi, theta) d_w: d_w in Euler angles (as the Euler rates above)
+            ew = (sf * d4 + cf * d5) / ct
+            v6, v7, v8 = v6 - (d3 + ew * st), v7 - (cf * d4 - sf * d5), v8 - ew
+        gamma_d = [v5, v6, v7, v8]
+        f, inner_ok = law.inner.solve(gamma_d, xi, u_meas, self._f, max_iter=g.newton_iterations)
+        if not inner_ok or not all(map(math.isfinite, f)):
             f = list(self._f)
         self._f = list(f)
-        alloc = allocate(f, self.w_max)
+        _, speeds, stage = allocate_floats(f, self.w_max)
         if not on_ground:
-            self.observer.start_step(xi, alloc.speeds.tolist())
+            observer.start_step(xi, speeds)
         return Command(
-            rotor_speeds=alloc.speeds,
-            saturated=alloc.saturated,
+            rotor_speeds=np.array(speeds),
+            saturated=stage != "none",
             info={
                 "phi_d": phid, "theta_d": thetad, "f1_d": q[2] if len(q) == 3 else math.nan,
                 "dphi_d": dphid, "dtheta_d": dthetad,
-                "ddphi_d": ddphid, "ddtheta_d": ddthetad, "f": f, "accel_d": cmd.accel,
-                "gamma_d": [v5, v6, v7, v8], "outer_ok": outer_ok, "inner_ok": inner_ok,
-                "limited": cmd.limited or tilt_clamped, "on_ground": on_ground,
-                "outer_iterations": sol.iterations, "integral": cmd.integral, "model_error": tuple(d),
-                "allocation": alloc.stage,
+                "ddphi_d": ddphid, "ddtheta_d": ddthetad, "f": f, "accel_d": accel,
+                "gamma_d": gamma_d, "outer_ok": outer_ok, "inner_ok": inner_ok,
+                "limited": limited or tilt_clamped, "on_ground": on_ground,
+                "outer_iterations": sol.iterations, "integral": integral, "model_error": tuple(d),
+                "allocation": stage,
             },
         )
-
-    def _param_rates(self, vel: list[float], acc: list[float], acc1: list[float], dpsi: float,
-                     ddpsi: float) -> tuple[list[float], list[float]]:
-        p1, p2 = [], []
-        for kind, i in self._param_kinds:
-            if kind == 1:
-                p1.append(vel[i])
-                p2.append(acc[i])
-            elif kind == 2:
-                p1.append(acc[i])
-                p2.append(acc1[i])
-            elif kind == 3:
-                p1.append(dpsi)
-                p2.append(ddpsi)
-            else:
-                p1.append(0.0)
-                p2.append(0.0)
-        return p1, p2
 
     def _filter(self, phid: float, thetad: float, dt: float) -> tuple[float, float, float, float]:
         """Critically damped 2nd-order command filter on phi_d, theta_d -> (phi', phi'', theta', theta'')."""
         w = self.gains.filter_bandwidth
-        if self._filt is None:
-            self._filt = [phid, 0.0, thetad, 0.0]
+        ww, w2 = w * w, 2.0 * w
+        filt = self._filt
+        if filt is None:
+            filt = self._filt = [phid, 0.0, thetad, 0.0]
+        # semi-implicit Euler in substeps small against 1/w
+        n = max(1, int(math.ceil(dt * w / 0.1)))
+        h = dt / n
         out = []
         for k, target in ((0, phid), (2, thetad)):
-            x, v = self._filt[k], self._filt[k + 1]
-            # semi-implicit Euler in substeps small against 1/w
-            n = max(1, int(math.ceil(dt * w / 0.1)))
-            h = dt / n
+            x, v = filt[k], filt[k + 1]
             for _ in range(n):
-                acc = w * w * (target - x) - 2.0 * w * v
-                v += h * acc
+                v += h * (ww * (target - x) - w2 * v)
                 x += h * v
-            self._filt[k], self._filt[k + 1] = x, v
-            out += [v, w * w * (target - x) - 2.0 * w * v]
+            filt[k], filt[k + 1] = x, v
+            out += [v, ww * (target - x) - w2 * v]
         return out[0], out[1], out[2], out[3]

@@ -54,6 +54,7 @@ class OuterLoop:
         self._ki = (gains.k_ix, gains.k_iy)
         self._tan_tilt = math.tan(math.radians(gains.max_tilt_deg))
         self._tan_ground = math.tan(math.radians(gains.ground_tilt_deg))
+        self._vertical = self.vertical_limits()
         self.reset()
 
     def reset(self) -> None:
@@ -78,55 +79,69 @@ class OuterLoop:
         model_error = (d_x, d_y) [m/s^2]: the vehicle's x'', y'' minus the model's, taken off the request;
         model_error_rate: its time derivative [m/s^3], taken off the request's (for the attitude feedforward).
         """
+        return OuterCommand(*self.update_flat(
+            dt, position[0], position[1], velocity[0], velocity[1], ref_pos, ref_vel, ref_acc, ref_jerk,
+            ref_snap, az[0], az[1], az[2], on_ground, model_error[0], model_error[1], model_error_rate[0],
+            model_error_rate[1]))
+
+    def update_flat(self, dt: float, x: float, y: float, vx: float, vy: float, ref_pos: list[float],
+                    ref_vel: list[float], ref_acc: list[float], ref_jerk: list[float], ref_snap: list[float],
+                    az: float, az1: float, az2: float, on_ground: bool, dx: float, dy: float, dx1: float,
+                    dy1: float) -> tuple[list[float], list[float], list[float], bool, tuple[float, float]]:
+        """update() on plain floats (the controller's hot path): the OuterCommand's fields as a tuple.
+
+        x, y [m], vx, vy [m/s]: position and velocity NED; az, az1, az2: a_z and its two derivatives;
+        dx, dy [m/s^2]: the model error and dx1, dy1 [m/s^3] its rate.
+        """
         g = self.gains
-        e = [ref_pos[0] - position[0], ref_pos[1] - position[1]]
-        ev = [ref_vel[0] - velocity[0], ref_vel[1] - velocity[1]]
-        dist = math.hypot(e[0], e[1])
-        clipped = dist > g.max_position_error
-        k = g.max_position_error / dist if clipped else 1.0
-        ec = [e[0] * k, e[1] * k]
+        ex, ey = ref_pos[0] - x, ref_pos[1] - y
+        evx, evy = ref_vel[0] - vx, ref_vel[1] - vy
+        dist = math.hypot(ex, ey)
+        e_max = g.max_position_error
+        clipped = dist > e_max
+        k = e_max / dist if clipped else 1.0
+        ecx, ecy = ex * k, ey * k
 
         # conditional integration (anti-windup): near the reference, airborne, last command not limited
-        if g.k_int > 0.0 and not on_ground and dist < g.integral_zone and not self._was_limited and dt > 0:
-            cap = g.max_integral_accel / g.k_int
-            for i in range(2):
-                self._integral[i] = min(max(self._integral[i] + e[i] * dt, -cap), cap)
+        k_int = g.k_int
+        if k_int > 0.0 and not on_ground and dist < g.integral_zone and not self._was_limited and dt > 0:
+            cap = g.max_integral_accel / k_int
+            integ = self._integral
+            integ[0] = min(max(integ[0] + ex * dt, -cap), cap)
+            integ[1] = min(max(integ[1] + ey * dt, -cap), cap)
         if on_ground:
             self._integral = [0.0, 0.0]
-        integ = self._integral
+        ix, iy = self._integral
 
-        a = [ref_acc[i] + self._kp[i] * ev[i] + self._ki[i] * ec[i] + g.k_int * integ[i] - model_error[i]
-             for i in range(2)]
-        up, down = self.vertical_limits()
-        a_z = min(max(az[0], up), down)
+        kpx, kpy = self._kp
+        kix, kiy = self._ki
+        ax = ref_acc[0] + kpx * evx + kix * ecx + k_int * ix - dx
+        ay = ref_acc[1] + kpy * evy + kiy * ecy + k_int * iy - dy
+        up, down = self._vertical
+        a_z = up if up > az else az  # min(max(az, up), down), NaN passing as it would there
+        if down < a_z:
+            a_z = down
         a_max = (self._tan_ground if on_ground else self._tan_tilt) * (self.gravity - a_z)
-        a_h = math.hypot(a[0], a[1])
+        a_h = math.hypot(ax, ay)
         tilt_limited = a_h > a_max
         if tilt_limited:
             s = a_max / a_h
-            a = [a[0] * s, a[1] * s]
-        limited = clipped or tilt_limited or a_z != az[0]
+            ax, ay = ax * s, ay * s
+        limited = clipped or tilt_limited or a_z != az
         self._was_limited = limited or clipped
 
         if clipped or tilt_limited or on_ground:
-            rate = [ref_jerk[0], ref_jerk[1]]
-            rate2 = [ref_snap[0], ref_snap[1]]
+            rx, ry = ref_jerk[0], ref_jerk[1]
+            r2x, r2y = ref_snap[0], ref_snap[1]
         else:
-            rate, rate2 = [0.0, 0.0], [0.0, 0.0]
-            for i in range(2):
-                kp, ki, kint = self._kp[i], self._ki[i], g.k_int
-                e2 = -(kp * ev[i] + ki * e[i] + kint * integ[i])
-                e3 = -(kp * e2 + ki * ev[i] + kint * e[i])
-                rate[i] = ref_jerk[i] + kp * e2 + ki * ev[i] + kint * e[i] - model_error_rate[i]
-                rate2[i] = ref_snap[i] + kp * e3 + ki * e2 + kint * ev[i]
-        if a_z != az[0]:
-            z_rate, z_rate2 = 0.0, 0.0
-        else:
-            z_rate, z_rate2 = az[1], az[2]
-        return OuterCommand(
-            accel=[a[0], a[1], a_z],
-            accel_rate=[rate[0], rate[1], z_rate],
-            accel_rate2=[rate2[0], rate2[1], z_rate2],
-            limited=limited,
-            integral=(integ[0], integ[1]),
-        )
+            e2x = -(kpx * evx + kix * ex + k_int * ix)
+            e2y = -(kpy * evy + kiy * ey + k_int * iy)
+            e3x = -(kpx * e2x + kix * evx + k_int * ex)
+            e3y = -(kpy * e2y + kiy * evy + k_int * ey)
+            rx = ref_jerk[0] + kpx * e2x + kix * evx + k_int * ex - dx1
+            ry = ref_jerk[1] + kpy * e2y + kiy * evy + k_int * ey - dy1
+            r2x = ref_snap[0] + kpx * e3x + kix * e2x + k_int * evx
+            r2y = ref_snap[1] + kpy * e3y + kiy * e2y + k_int * evy
+        if a_z != az:
+            az1, az2 = 0.0, 0.0
+        return [ax, ay, a_z], [rx, ry, az1], [r2x, r2y, az2], limited, (ix, iy)
