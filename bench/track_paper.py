@@ -35,6 +35,8 @@ def print_table(rows: list[TrackingRow], title: str) -> None:
     """One Markdown table of the rows."""
     print(f"\n### {title}\n")
     print(tracking_markdown(rows, state_column=True), end="")
+    for label, law in {r.label: r.law for r in rows if r.law}.items():
+        print(f"- {label}: {law}")
     sys.stdout.flush()
 
 
