@@ -26,6 +26,7 @@ import random
 import shutil
 import subprocess
 import tempfile
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -229,11 +230,13 @@ def _wrap(fn: Any, n_in: int, n_out: int) -> Callable[..., list[float]]:
     inb = (ctypes.c_double * max(n_in, 1))()
     outb = (ctypes.c_double * max(n_out, 1))()
     pin, pout = ctypes.addressof(inb), ctypes.addressof(outb)
+    lock = threading.Lock()  # the buffers are shared: two controllers on one law may run in two threads
 
     def call(*values: float) -> list[float]:
-        inb[:n_in] = values
-        fn(pin, pout)
-        return outb[:n_out]
+        with lock:
+            inb[:n_in] = values
+            fn(pin, pout)
+            return outb[:n_out]
 
     call.buffers = (inb, outb)  # type: ignore[attr-defined]  # kept alive with the function
     return call

@@ -195,3 +195,19 @@ def test_controller_gives_the_same_commands_native_or_python(which, vehicle, cac
     # rounding differs (Gaussian elimination vs cofactors, C vs Python libm), so Newton may stop one
     # iteration apart; the warm starts and the observer carry that along: 1e-3 rad/s is 2e-6 of hover
     assert worst < 1e-3, f"largest difference {worst:.3g} rad/s"
+
+
+def test_a_compiled_function_is_safe_to_call_from_several_threads(cache):
+    """Its argument and result buffers are shared by every caller of the function."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    python = _python()
+    fn = native.compile_expressions("threads", [X, Y], EXPRS, python, [0.3, -0.2])
+    points = np.random.default_rng(9).uniform(-2.0, 2.0, (4000, 2)).tolist()
+
+    def run(chunk):
+        return [(fn(x, y), python(x, y)) for x, y in chunk]
+
+    with ThreadPoolExecutor(4) as pool:
+        results = [r for part in pool.map(run, [points[i::4] for i in range(4)]) for r in part]
+    assert all(got == pytest.approx(ref, rel=1e-12, abs=1e-12) for got, ref in results)
