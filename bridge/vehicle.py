@@ -14,9 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from bridge.errors import UserError
+from bridge.yaml_file import describe_value, float_value, load_yaml_file
 
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
@@ -224,7 +223,7 @@ class VehicleConfig:
         if initial_position is not None or initial_yaw is not None:
             pos = cfg.initial.position if initial_position is None else _vec3_value(where, "initial.position",
                                                                                       initial_position)
-            yaw = cfg.initial.yaw if initial_yaw is None else _float_value(where, "initial.yaw", initial_yaw)
+            yaw = cfg.initial.yaw if initial_yaw is None else float_value(where, "initial.yaw", initial_yaw)
             cfg = dataclasses.replace(cfg, initial=InitialConfig(pos, yaw))
         if sensors is not None:
             if sensors not in SENSOR_PRESETS:
@@ -287,17 +286,7 @@ def load_vehicle(path_or_name: str | Path) -> VehicleConfig:
     """Load and validate a vehicle file (path or bundled name); each mistake is a UserError naming the key."""
     path = resolve_vehicle_path(path_or_name)
     where = f"vehicle file {path}"
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{where}: cannot read it ({exc})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc)
-        raise UserError(f"{where}: YAML syntax error{at}: {problem}", hint="fix the YAML syntax") from None
+    data = load_yaml_file(path, where)
     return _parse(where, data, path)
 
 
@@ -313,7 +302,7 @@ class _Section:
         self.prefix = prefix
         if not isinstance(data, dict):
             what = f"key '{prefix}'" if prefix else "the top level"
-            raise UserError(f"{where}: {what} must be a mapping, got {_describe(data)}")
+            raise UserError(f"{where}: {what} must be a mapping, got {describe_value(data)}")
         self.data = data
         self.used: set[str] = set()
 
@@ -334,7 +323,7 @@ class _Section:
 
     def number(self, name: str, *, positive: bool = False, nonnegative: bool = False,
                default: Any = ...) -> float:
-        value = _float_value(self.where, self.key(name), self.raw(name, default))
+        value = float_value(self.where, self.key(name), self.raw(name, default))
         _check_sign(self.where, self.key(name), value, positive, nonnegative)
         return value
 
@@ -342,7 +331,7 @@ class _Section:
         value = self.raw(name, default)
         if isinstance(value, bool) or not isinstance(value, int):
             raise UserError(f"{self.where}: key '{self.key(name)}' must be an integer, "
-                            f"got {_describe(value)}")
+                            f"got {describe_value(value)}")
         if nonnegative and value < 0:
             raise UserError(f"{self.where}: key '{self.key(name)}' must be >= 0, got {value}")
         return value
@@ -350,7 +339,8 @@ class _Section:
     def text(self, name: str, choices: tuple[str, ...] | None = None, default: Any = ...) -> str:
         value = self.raw(name, default)
         if not isinstance(value, str):
-            raise UserError(f"{self.where}: key '{self.key(name)}' must be a string, got {_describe(value)}")
+            raise UserError(f"{self.where}: key '{self.key(name)}' must be a string, "
+                            f"got {describe_value(value)}")
         if choices is not None and value not in choices:
             raise UserError(f"{self.where}: key '{self.key(name)}' must be one of {', '.join(choices)}, "
                             f"got {value!r}")
@@ -360,7 +350,7 @@ class _Section:
              default: Any = ...) -> Vec3:
         value = self.raw(name, default)
         if scalar_ok and not isinstance(value, (list, tuple)):
-            v = _float_value(self.where, self.key(name), value)
+            v = float_value(self.where, self.key(name), value)
             out = (v, v, v)
         else:
             out = _vec3_value(self.where, self.key(name), value)
@@ -376,29 +366,10 @@ class _Section:
                             hint=f"keys allowed here: {known}")
 
 
-def _describe(value: Any) -> str:
-    return "nothing" if value is None else f"{type(value).__name__} {value!r}"
-
-
-def _float_value(where: str, key: str, value: Any) -> float:
-    if isinstance(value, str):
-        # YAML 1.1 reads 1e-4 (no dot) as a string: accept what Python reads as a number.
-        try:
-            value = float(value)
-        except ValueError:
-            pass
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise UserError(f"{where}: key '{key}' must be a number, got {_describe(value)}")
-    out = float(value)
-    if not math.isfinite(out):
-        raise UserError(f"{where}: key '{key}' must be finite, got {value}")
-    return out
-
-
 def _vec3_value(where: str, key: str, value: Any) -> Vec3:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise UserError(f"{where}: key '{key}' must be a list of 3 numbers, got {_describe(value)}")
-    return tuple(_float_value(where, f"{key}[{i}]", v) for i, v in enumerate(value))  # type: ignore[return-value]
+        raise UserError(f"{where}: key '{key}' must be a list of 3 numbers, got {describe_value(value)}")
+    return tuple(float_value(where, f"{key}[{i}]", v) for i, v in enumerate(value))  # type: ignore[return-value]
 
 
 def _check_sign(where: str, key: str, value: float, positive: bool, nonnegative: bool) -> None:
@@ -419,7 +390,7 @@ def _inertia(sec: _Section) -> Mat3:
         mat = tuple(_vec3_value(sec.where, f"{key}[{i}]", row) for i, row in enumerate(value))  # type: ignore
     else:
         raise UserError(f"{sec.where}: key '{key}' must be 3 diagonal values or a 3x3 matrix (kg m^2), "
-                        f"got {_describe(value)}")
+                        f"got {describe_value(value)}")
     for i in range(3):
         for j in range(i + 1, 3):
             a, b = mat[i][j], mat[j][i]

@@ -38,9 +38,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from bridge.errors import UserError
+from bridge.yaml_file import float_value, load_yaml_file
 
 PAPER_C = (11.52, 28.00, 16.63, 6.54, 8.40, 27.50, 15.54, 5.49)
 DERIVATIVE_MODES = ("analytic", "filter")
@@ -144,14 +143,7 @@ def load_gains(path: str | os.PathLike[str] | None) -> BacksteppingGains:
     if path is None:
         return BacksteppingGains()
     p = Path(path)
-    where = str(p)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise UserError(f"cannot read gains file {where}: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise UserError(f"gains file {where} is not valid YAML: {exc}") from None
-    return gains_from_dict(data or {}, where)
+    return gains_from_dict(load_yaml_file(p, f"gains file {p}") or {}, str(p))
 
 
 def gains_from_dict(data: Any, where: str = "gains") -> BacksteppingGains:
@@ -164,9 +156,9 @@ def gains_from_dict(data: Any, where: str = "gains") -> BacksteppingGains:
     for key, value in data.items():
         key_s = str(key)
         if key_s in {f"c{i}" for i in range(1, 9)}:
-            c[int(key_s[1]) - 1] = _number(where, key_s, value)
+            c[int(key_s[1]) - 1] = float_value(where, key_s, value)
         elif key_s in _FLOAT_FIELDS:
-            changes[key_s] = _number(where, key_s, value)
+            changes[key_s] = float_value(where, key_s, value)
         elif key_s == "newton_iterations":
             if isinstance(value, bool) or not isinstance(value, int):
                 raise UserError(f"{where}: key 'newton_iterations' must be an integer, got {value!r}")
@@ -192,10 +184,3 @@ def gains_to_dict(g: BacksteppingGains) -> dict[str, Any]:
     return out
 
 
-def _number(where: str, key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise UserError(f"{where}: key '{key}' must be a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise UserError(f"{where}: key '{key}' must be finite, got {value!r}")
-    return v

@@ -10,10 +10,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from bridge.errors import UserError
 from bridge.vehicle import VehicleConfig
+from bridge.yaml_file import load_yaml_file
 from controller.plugin import Controller
 
 CONTROLLER_NAMES = ("backstepping", "pid", "se3")
@@ -30,14 +29,9 @@ def check_controller_name(name: str) -> str:
 def read_gains_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The mapping in a gains YAML file (empty file: {}); UserError if unreadable or not a mapping."""
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise UserError(f"gains file {p} does not exist") from None
-    except OSError as exc:
-        raise UserError(f"cannot read gains file {p}: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise UserError(f"gains file {p} is not valid YAML: {exc}") from None
+    if not p.exists():
+        raise UserError(f"gains file {p} does not exist")
+    data = load_yaml_file(p, f"gains file {p}")
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 import sympy
-import yaml
 from scipy.interpolate import make_interp_spline
 
 from bridge.errors import UserError
+from bridge.yaml_file import load_yaml_file
 from controller.plugin import Reference
 
 TRAJECTORY_DIR = Path(__file__).resolve().parent / "trajectories"
@@ -201,12 +201,7 @@ def load_trajectory(name_or_path: str | os.PathLike[str]) -> ExpressionTrajector
     if not path.is_file():
         raise UserError(f"trajectory {text!r} not found",
                         hint=f"use one of {', '.join(BUILTIN)} or a path to a trajectory YAML file")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise UserError(f"cannot read trajectory file {path}: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise UserError(f"trajectory file {path} is not valid YAML: {exc}") from None
+    data = load_yaml_file(path, f"trajectory file {path}")
     return trajectory_from_dict(data, str(path))
 
 

@@ -29,10 +29,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from bridge.errors import UserError
 from bridge.vehicle import VehicleConfig
+from bridge.yaml_file import load_yaml_file
 from identification.hover_stabilizer import HoverStabilizer, Reference, StabilizerGains
 
 PROFILE_KINDS = ("random-steps", "sinusoids", "closed-loop")
@@ -243,12 +243,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
     """Load and validate a profile (bundled name or YAML path); each mistake is a UserError naming the key."""
     path = resolve_profile_path(name_or_path)
     where = f"excitation profile {path}"
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"{where}: cannot read it ({exc})") from None
-    except yaml.YAMLError as exc:
-        raise UserError(f"{where}: YAML syntax error: {exc}") from None
+    data = load_yaml_file(path, where)
     r = _Reader(where, data)
     kind = r.text("kind", PROFILE_KINDS)
     name = str(r.raw("name", path.stem))

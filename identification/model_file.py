@@ -22,6 +22,7 @@ import yaml
 from sympy.printing.str import StrPrinter
 
 from bridge.errors import UserError
+from bridge.yaml_file import load_yaml_file
 
 FORMAT = "quadsr-model/1"
 KINDS = ("learned", "true-model")
@@ -543,20 +544,11 @@ def _read_target(r: _Reader, name: str, raw: Any) -> TargetModel:
 def load_model(path: str | os.PathLike[str]) -> Model:
     """Read a model.yaml; a missing, unreadable or malformed file is a UserError naming file and key."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise UserError(
-            f"model file {p} does not exist",
-            hint="write one with `quadsr identify` or `quadsr model-from-vehicle`",
-        ) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"cannot read model file {p}: {exc}") from None
+    if not p.exists():
+        raise UserError(f"model file {p} does not exist",
+                        hint="write one with `quadsr identify` or `quadsr model-from-vehicle`")
     r = _Reader(p)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise r.fail("(document)", f"not valid YAML: {exc}") from None
+    data = load_yaml_file(p, f"{p}: (document)")  # as _Reader names a file and key
     if data is None:
         raise r.fail("(document)", "the file is empty")
     data = r.mapping(data, "(document)")
