@@ -56,6 +56,7 @@ class FlightSettings:
     link_timeout: float = 0.5  # s without a sensor message before the companion gives up
     connect_timeout: float = 10.0  # s to wait for the SITL's first step
     progress: bool = True
+    figures: bool = True  # write tracking.png and path3d.png at the end (campaigns switch them off)
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
 
 
@@ -247,6 +248,8 @@ class Companion:
             tilt_rad=tilt,
         )
         files["metrics_md"], files["metrics_csv"] = write_metrics(metrics, out)
+        if not self.settings.figures:
+            return metrics
         from controller.plots import path3d_figure, tracking_figure
 
         title = f"{metrics.controller} on {metrics.trajectory}"
