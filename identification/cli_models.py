@@ -73,6 +73,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    fleet = p.add_argument_group("fleets of logs (one model per log, on a Dask cluster)")
+    fleet.add_argument("--fleet", action="store_true",
+                       help="identify each log on its own (LOG may be a folder or a glob); -o is then the "
+                            "output folder of fleet.csv, fleet_terms.csv and models/")
+    fleet.add_argument("--workers", type=int, default=2, metavar="N", help="local Dask worker processes (2)")
+    fleet.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="an existing Dask scheduler instead of a local cluster")
     p.set_defaults(func=run_identify)
 
     p = sub.add_parser(
@@ -136,8 +143,30 @@ def _load(logs: list[str], targets_from: str, motor_curve: str | None):
     return datasets[0] if len(datasets) == 1 else Dataset.concat(datasets)
 
 
+def run_fleet(args: argparse.Namespace) -> int:
+    """quadsr identify --fleet: one identification per log on a Dask cluster; the fleet tables."""
+    from identification.fleet import FleetSettings, expand_logs, identify_fleet
+
+    if not (math.isfinite(args.budget) and args.budget > 0):
+        raise UserError(f"--budget must be a positive number of seconds, got {args.budget}")
+    if args.workers < 1:
+        raise UserError(f"--workers must be >= 1, got {args.workers}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UserError(f"-o {args.out} is a file", hint="with --fleet, -o names the output folder")
+    logs = expand_logs(args.logs)
+    settings = FleetSettings(args.targets_from, args.motor_curve, args.engine, args.budget, args.seed)
+    print(f"fleet: {len(logs)} logs -> {out}", file=sys.stderr, flush=True)
+    rows = identify_fleet(logs, out, settings, workers=args.workers, scheduler=args.scheduler)
+    ok = sum(r["status"] == "ok" for r in rows)
+    print(f"fleet: {ok} of {len(rows)} logs identified; wrote {out / 'fleet.csv'}, {out / 'fleet_terms.csv'}")
+    return 0 if ok == len(rows) else 1
+
+
 def run_identify(args: argparse.Namespace) -> int:
-    """Identify the model and write it."""
+    """Identify the model and write it (or, with --fleet, one model per log and the fleet tables)."""
+    if args.fleet:
+        return run_fleet(args)
     from identification.engine import load_engine_settings
     from identification.identify import identify, parse_targets
     from identification.model_file import save_model
