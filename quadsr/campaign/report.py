@@ -133,27 +133,31 @@ def parameter_figure(rows: list[dict[str, Any]], name: str, path: Path) -> Path:
 
 
 def identification_figure(rows: list[dict[str, Any]], swept: list[str], path: Path) -> Path | None:
-    """learn-fly: the lowest validation R^2 over the six targets against sensors and each swept parameter."""
+    """learn-fly: each target's R^2 on a second flight against sensors, excitation and swept values."""
     r2_cols = sorted({k for r in rows for k in r if k.startswith("r2_")})
     learned = [r for r in rows if any(r.get(c) is not None for c in r2_cols)]
     if not learned:
         return None
-    names = [n for n in ("sensors", "profile", *swept)
+    names = [n for n in dict.fromkeys(("sensors", "profile", *swept))
              if len({str(r.get(n)) for r in learned}) > 1] or ["sensors"]
     fig, axes = plt.subplots(len(names), 1, figsize=(7.5, 3.2 * len(names)), squeeze=False)
     for ax, name in zip(axes[:, 0], names, strict=True):
-        worst = [min(float(r[c]) for c in r2_cols if r.get(c) is not None) for r in learned]
-        x = [r.get(name) for r in learned]
-        if _numeric(learned, name):
-            ax.scatter([float(v) for v in x], worst, s=12)
-        else:
-            cats = sorted({str(v) for v in x})
-            ax.scatter([cats.index(str(v)) for v in x], worst, s=12)
+        numeric = _numeric(learned, name)
+        cats = sorted({str(r.get(name)) for r in learned})
+        for j, col in enumerate(r2_cols):
+            pts = [(r.get(name), r[col]) for r in learned if r.get(col) is not None]
+            if numeric:
+                x = [float(v) for v, _ in pts]
+            else:
+                x = [cats.index(str(v)) + 0.06 * (j - len(r2_cols) / 2) for v, _ in pts]
+            ax.scatter(x, [y for _, y in pts], s=14, label=col[3:])
+        if not numeric:
             ax.set_xticks(range(len(cats)), cats)
         ax.set_xlabel(name)
-        ax.set_ylabel("lowest validation R^2")
+        ax.set_ylabel("validation R^2")
         ax.grid(True, alpha=0.3)
-    fig.suptitle("Identification accuracy (learn-fly tasks)")
+        ax.legend(fontsize=7, ncol=3)
+    fig.suptitle("Identification accuracy on a second flight (learn-fly tasks)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
