@@ -163,3 +163,12 @@ random:
 
     report = write_report(run, "quadsr campaign c.yaml --out out").read_text()
     assert "## Failures" in report and "motor.time_constant" in report
+
+
+def test_wind_parameters_become_sitl_flags():
+    from quadsr.campaign.task_run import wind_args
+
+    assert wind_args({"wind_speed": 0.0}, 5) == []
+    args = wind_args({"wind_speed": 4.0, "wind_direction": 3.141592653589793, "turbulence": "moderate"}, 5)
+    assert args[0] == "--wind=-4,4.89859e-16,0"  # towards south: a negative north, written with '='
+    assert args[1:] == ["--turbulence", "moderate", "--wind-seed", "5"]

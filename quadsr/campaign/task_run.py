@@ -59,8 +59,8 @@ def task_vehicle_yaml(nominal_yaml: str, params: dict[str, Any], vehicle_keys: t
     return yaml.safe_dump(data, sort_keys=False)
 
 
-def wind_args(params: dict[str, Any]) -> list[str]:
-    """The SITL's wind flags for a task (none when there is no wind): --wind N,E,D [--turbulence P]."""
+def wind_args(params: dict[str, Any], seed: int) -> list[str]:
+    """The SITL's wind flags for a task (none without wind): --wind=N,E,D [--turbulence P --wind-seed S]."""
     speed = float(params.get("wind_speed", 0.0))
     down = float(params.get("wind_down", 0.0))
     turbulence = params.get("turbulence", "none")
@@ -68,9 +68,9 @@ def wind_args(params: dict[str, Any]) -> list[str]:
         return []
     direction = float(params.get("wind_direction", 0.0))
     north, east = speed * math.cos(direction), speed * math.sin(direction)
-    args = ["--wind", f"{north:.6g},{east:.6g},{down:.6g}"]
+    args = [f"--wind={north:.6g},{east:.6g},{down:.6g}"]  # '=': a negative north must not read as a flag
     if turbulence != "none":
-        args += ["--turbulence", str(turbulence)]
+        args += ["--turbulence", str(turbulence), "--wind-seed", str(seed)]
     return args
 
 
@@ -141,7 +141,7 @@ def run_task(task: Task, ctx: TaskContext, vehicle_keys: tuple[str, ...]) -> dic
         vehicle_path = work / f"{ctx.vehicle_name}-task.yaml"
         vehicle_path.write_text(task_vehicle_yaml(ctx.vehicle_yaml, task.params, vehicle_keys))
         load_vehicle(vehicle_path)  # a drawn value the vehicle file refuses is this task's failure
-        extra = wind_args(task.params)
+        extra = wind_args(task.params, task.seed)
         name = task.params["controller"]
         model_yaml = None
         if name == "backstepping-true":
