@@ -1,0 +1,129 @@
+"""The state derivative of a quadrotor with per-rotor geometry, aerodynamic effects and wind (PX4 SIH style).
+
+Read the motors, compute each contribution to the body force and moment (FRD, about the CG), sum, and return
+d(state)/dt for the 17-float state of sitl.dynamics. With v_a = R^T (v - v_wind) the body airspeed (m/s, FRD)
+and v_i = v_a + w x r_i each hub's airspeed:
+
+    T_i = ground_effect(h_i) * (Ct_i w_i^2 + translational_lift(v_i))        rotor thrusts, N along -z
+    F_b = sum_i (0, 0, -T_i) + rotor_drag(w_i, v_i) + frame_drag(v_a)        body force, N
+    M_b = sum_i r_i x (0, 0, -T_i) - s_i Cm_i w_i^2 e3 + rotor drag moment   body moment, N m
+    m dv/dt = m g e3 + R F_b ;  J dw/dt = M_b - w x (J w + (0, 0, h_z)) - D w,  h_z = Jm sum_i s_i w_i
+
+The effects are plug-ins of two kinds, each built from the vehicle file and None when off: thrust modifiers
+(sitl.translational_lift adds to T_i, sitl.ground_effect multiplies it) and wrench sources (sitl.rotor_drag,
+sitl.frame_drag). The wind list is read at every call (sitl.dynamics.Quadrotor sets it once per exchange
+step).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from bridge.integration import Derivative
+from bridge.vehicle import VehicleConfig
+from sitl.frame_drag import FrameDrag
+from sitl.ground_effect import GroundEffect
+from sitl.motors import Motors
+from sitl.rotor_drag import RotorDrag
+from sitl.rotor_geometry import RotorGeometry
+from sitl.translational_lift import TranslationalLift
+
+
+def inverse3(m: tuple) -> tuple:
+    """Inverse of a 3x3 matrix (rows of floats), as 9 floats row-major."""
+    (a, b, c), (d, e, f), (g, h, i) = m
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return (
+        (e * i - f * h) / det, (c * h - b * i) / det, (b * f - c * e) / det,
+        (f * g - d * i) / det, (a * i - c * g) / det, (c * d - a * f) / det,
+        (d * h - e * g) / det, (b * g - a * h) / det, (a * e - b * d) / det,
+    )
+
+
+def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[float]) -> Derivative:
+    """f(state, commanded speeds rad/s) -> 17 floats of a vehicle with effects; wind NED m/s read per call."""
+    itm = motors.inv_time_constant
+    g = vehicle.gravity
+    im = 1.0 / vehicle.mass
+    j00, j01, j02, j10, j11, j12, j20, j21, j22 = (x for row in vehicle.inertia for x in row)
+    i00, i01, i02, i10, i11, i12, i20, i21, i22 = inverse3(vehicle.inertia)
+    d0, d1, d2 = vehicle.drag.angular_damping
+    geometry = RotorGeometry(vehicle)
+    ct1, ct2, ct3, ct4 = geometry.thrust_coefficients
+    aero = vehicle.aero
+    rotor_drag = RotorDrag(aero.rotor_drag, geometry.arms) if aero.rotor_drag is not None else None
+    lift = TranslationalLift(aero.translational_lift) if aero.translational_lift else None
+    ground = (GroundEffect(aero.ground_effect)
+              if aero.ground_effect is not None and vehicle.ground == "plane" else None)
+    frame = (FrameDrag(aero.frame_drag, vehicle.drag.body_quadratic)
+             if any(aero.frame_drag) or any(vehicle.drag.body_quadratic) else None)
+    need_air = rotor_drag is not None or lift is not None
+    airspeeds = geometry.rotor_airspeeds
+    heights = geometry.heights
+    rotor_wrench = geometry.wrench
+
+    def derivative(s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
+        _, _, z, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
+        c1, c2, c3, c4 = cmd
+        # rotation body -> earth
+        xx, yy, zz = qx * qx, qy * qy, qz * qz
+        xy, xz, yz = qx * qy, qx * qz, qy * qz
+        wxq, wyq, wzq = qw * qx, qw * qy, qw * qz
+        r00 = 1.0 - 2.0 * (yy + zz)
+        r01 = 2.0 * (xy - wzq)
+        r02 = 2.0 * (xz + wyq)
+        r10 = 2.0 * (xy + wzq)
+        r11 = 1.0 - 2.0 * (xx + zz)
+        r12 = 2.0 * (yz - wxq)
+        r20 = 2.0 * (xz - wyq)
+        r21 = 2.0 * (yz + wxq)
+        r22 = 1.0 - 2.0 * (xx + yy)
+        # body airspeed R^T (v - wind)
+        ex, ey, ez = vx - wind[0], vy - wind[1], vz - wind[2]
+        ua = (r00 * ex + r10 * ey + r20 * ez, r01 * ex + r11 * ey + r21 * ez, r02 * ex + r12 * ey + r22 * ez)
+        speeds = (w1, w2, w3, w4)
+        thrusts = (ct1 * w1 * w1, ct2 * w2 * w2, ct3 * w3 * w3, ct4 * w4 * w4)
+        if need_air:
+            air = airspeeds(ua, (wx, wy, wz))
+            if lift is not None:
+                thrusts = tuple(t + e for t, e in zip(thrusts, lift.extra_thrust(air)))  # noqa: B905
+        if ground is not None:
+            thrusts = tuple(t * r for t, r in zip(thrusts, ground.ratios(heights(z, r20, r21, r22))))  # noqa: B905
+        thrust, tx, ty, tz, hz = rotor_wrench(thrusts, speeds)
+        fbx = fby = 0.0
+        fbz = -thrust
+        if rotor_drag is not None:
+            fx, fy, fz, mx_, my_, mz_ = rotor_drag.wrench(speeds, air)
+            fbx += fx
+            fby += fy
+            fbz += fz
+            tx += mx_
+            ty += my_
+            tz += mz_
+        if frame is not None:
+            fx, fy, fz = frame.force(ua)
+            fbx += fx
+            fby += fy
+            fbz += fz
+        ax = (r00 * fbx + r01 * fby + r02 * fbz) * im
+        ay = (r10 * fbx + r11 * fby + r12 * fbz) * im
+        az = (r20 * fbx + r21 * fby + r22 * fbz) * im + g
+        dqw = 0.5 * (-qx * wx - qy * wy - qz * wz)
+        dqx = 0.5 * (qw * wx + qy * wz - qz * wy)
+        dqy = 0.5 * (qw * wy - qx * wz + qz * wx)
+        dqz = 0.5 * (qw * wz + qx * wy - qy * wx)
+        hx = j00 * wx + j01 * wy + j02 * wz
+        hy = j10 * wx + j11 * wy + j12 * wz
+        hzb = j20 * wx + j21 * wy + j22 * wz + hz
+        mx = tx - (wy * hzb - wz * hy) - d0 * wx
+        my = ty - (wz * hx - wx * hzb) - d1 * wy
+        mz = tz - (wx * hy - wy * hx) - d2 * wz
+        return (
+            vx, vy, vz, ax, ay, az, dqw, dqx, dqy, dqz,
+            i00 * mx + i01 * my + i02 * mz,
+            i10 * mx + i11 * my + i12 * mz,
+            i20 * mx + i21 * my + i22 * mz,
+            (c1 - w1) * itm, (c2 - w2) * itm, (c3 - w3) * itm, (c4 - w4) * itm,
+        )
+
+    return derivative
