@@ -21,12 +21,12 @@ from collections.abc import Sequence
 
 from bridge.integration import Derivative
 from bridge.vehicle import VehicleConfig
-from sitl.frame_drag import FrameDrag
-from sitl.ground_effect import GroundEffect
+from sitl.frame_drag import frame_drag
+from sitl.ground_effect import ground_effect
 from sitl.motors import Motors
-from sitl.rotor_drag import RotorDrag
+from sitl.rotor_drag import rotor_drag
 from sitl.rotor_geometry import RotorGeometry
-from sitl.translational_lift import TranslationalLift
+from sitl.translational_lift import translational_lift
 
 
 def inverse3(m: tuple) -> tuple:
@@ -51,16 +51,16 @@ def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[
     geometry = RotorGeometry(vehicle)
     ct1, ct2, ct3, ct4 = geometry.thrust_coefficients
     aero = vehicle.aero
-    rotor_drag = RotorDrag(aero.rotor_drag, geometry.arms) if aero.rotor_drag is not None else None
-    lift = TranslationalLift(aero.translational_lift) if aero.translational_lift else None
-    ground = (GroundEffect(aero.ground_effect)
+    drag = rotor_drag(aero.rotor_drag, geometry.arms) if aero.rotor_drag is not None else None
+    lift = translational_lift(aero.translational_lift) if aero.translational_lift else None
+    ground = (ground_effect(aero.ground_effect)
               if aero.ground_effect is not None and vehicle.ground == "plane" else None)
-    frame = (FrameDrag(aero.frame_drag, vehicle.drag.body_quadratic)
+    frame = (frame_drag(aero.frame_drag, vehicle.drag.body_quadratic)
              if any(aero.frame_drag) or any(vehicle.drag.body_quadratic) else None)
-    need_air = rotor_drag is not None or lift is not None
-    airspeeds = geometry.rotor_airspeeds
-    heights = geometry.heights
-    rotor_wrench = geometry.wrench
+    need_air = drag is not None or lift is not None
+    airspeeds = geometry.airspeeds()
+    heights = geometry.heights()
+    rotor_wrench = geometry.wrench()
 
     def derivative(s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
         _, _, z, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
@@ -80,20 +80,23 @@ def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[
         r22 = 1.0 - 2.0 * (xx + yy)
         # body airspeed R^T (v - wind)
         ex, ey, ez = vx - wind[0], vy - wind[1], vz - wind[2]
-        ua = (r00 * ex + r10 * ey + r20 * ez, r01 * ex + r11 * ey + r21 * ez, r02 * ex + r12 * ey + r22 * ez)
-        speeds = (w1, w2, w3, w4)
-        thrusts = (ct1 * w1 * w1, ct2 * w2 * w2, ct3 * w3 * w3, ct4 * w4 * w4)
+        ux = r00 * ex + r10 * ey + r20 * ez
+        uy = r01 * ex + r11 * ey + r21 * ez
+        uz = r02 * ex + r12 * ey + r22 * ez
+        t1, t2, t3, t4 = ct1 * w1 * w1, ct2 * w2 * w2, ct3 * w3 * w3, ct4 * w4 * w4
         if need_air:
-            air = airspeeds(ua, (wx, wy, wz))
+            air = airspeeds(ux, uy, uz, wx, wy, wz)
             if lift is not None:
-                thrusts = tuple(t + e for t, e in zip(thrusts, lift.extra_thrust(air)))  # noqa: B905
+                e1, e2, e3, e4 = lift(air)
+                t1, t2, t3, t4 = t1 + e1, t2 + e2, t3 + e3, t4 + e4
         if ground is not None:
-            thrusts = tuple(t * r for t, r in zip(thrusts, ground.ratios(heights(z, r20, r21, r22))))  # noqa: B905
-        thrust, tx, ty, tz, hz = rotor_wrench(thrusts, speeds)
+            g1, g2, g3, g4 = ground(*heights(z, r20, r21, r22))
+            t1, t2, t3, t4 = t1 * g1, t2 * g2, t3 * g3, t4 * g4
+        thrust, tx, ty, tz, hz = rotor_wrench(t1, t2, t3, t4, w1, w2, w3, w4)
         fbx = fby = 0.0
         fbz = -thrust
-        if rotor_drag is not None:
-            fx, fy, fz, mx_, my_, mz_ = rotor_drag.wrench(speeds, air)
+        if drag is not None:
+            fx, fy, fz, mx_, my_, mz_ = drag(w1, w2, w3, w4, air)
             fbx += fx
             fby += fy
             fbz += fz
@@ -101,7 +104,7 @@ def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[
             ty += my_
             tz += mz_
         if frame is not None:
-            fx, fy, fz = frame.force(ua)
+            fx, fy, fz = frame(ux, uy, uz)
             fbx += fx
             fby += fy
             fbz += fz

@@ -132,6 +132,8 @@ class Quadrotor:
         self._paper = vehicle.paper_physics
         self._wind = [0.0, 0.0, 0.0]  # NED m/s, held over each exchange step
         self._wind_model: Wind | None = None
+        self._specific_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._specific_force_at: tuple[int, int] = (-1, 0)  # (time_usec, id of the state list) it is for
         self._f = make_derivative(vehicle, self.motors, self.mixer, self._wind)
         self._cmd = (0.0, 0.0, 0.0, 0.0)
         self._s: list[float] = [0.0] * 17
@@ -311,14 +313,19 @@ class Quadrotor:
             return (-g * 2.0 * (qx * qz - qw * qy), -g * 2.0 * (qy * qz + qw * qx),
                     -g * (1.0 - 2.0 * (qx * qx + qy * qy)))
         if not self._paper:  # R^T (a - g e3) from the derivative: every effect's force, already summed
+            if self._specific_force_at == (self._time_usec, id(s)):
+                return self._specific_force
             d = self._derivative(s, self._cmd)
             ax, ay, az = d[3], d[4], d[5] - self._g
-            return ((1.0 - 2.0 * (qy * qy + qz * qz)) * ax + 2.0 * (qx * qy + qw * qz) * ay
-                    + 2.0 * (qx * qz - qw * qy) * az,
-                    2.0 * (qx * qy - qw * qz) * ax + (1.0 - 2.0 * (qx * qx + qz * qz)) * ay
-                    + 2.0 * (qy * qz + qw * qx) * az,
-                    2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
-                    + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)
+            self._specific_force = (
+                (1.0 - 2.0 * (qy * qy + qz * qz)) * ax + 2.0 * (qx * qy + qw * qz) * ay
+                + 2.0 * (qx * qz - qw * qy) * az,
+                2.0 * (qx * qy - qw * qz) * ax + (1.0 - 2.0 * (qx * qx + qz * qz)) * ay
+                + 2.0 * (qy * qz + qw * qx) * az,
+                2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
+                + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)
+            self._specific_force_at = (self._time_usec, id(s))
+            return self._specific_force
         mixer = self.mixer
         w1, w2, w3, w4 = s[13], s[14], s[15], s[16]
         fbz = -mixer.ct * (w1 * w1 + w2 * w2 + w3 * w3 + w4 * w4)

@@ -6,22 +6,22 @@ at h = R/4, so h is held at h_min (> R/4) below it. Only with a ground plane (fr
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from bridge.airframe import GroundEffectConfig
 
 
-class GroundEffect:
-    """A thrust modifier (multiplicative, per rotor)."""
+def ground_effect(config: GroundEffectConfig) -> Callable[..., tuple[float, float, float, float]]:
+    """A thrust modifier (multiplicative): f(h1..h4 m) -> each rotor's T/T_inf."""
+    q2 = (config.rotor_radius / 4.0) ** 2  # m^2
+    hmin = config.min_height
 
-    def __init__(self, config: GroundEffectConfig):
-        self.quarter_radius = config.rotor_radius / 4.0
-        self.min_height = config.min_height
+    def ratios(h1: float, h2: float, h3: float, h4: float) -> tuple[float, float, float, float]:
+        h1 = h1 if h1 > hmin else hmin
+        h2 = h2 if h2 > hmin else hmin
+        h3 = h3 if h3 > hmin else hmin
+        h4 = h4 if h4 > hmin else hmin
+        return (1.0 / (1.0 - q2 / (h1 * h1)), 1.0 / (1.0 - q2 / (h2 * h2)),
+                1.0 / (1.0 - q2 / (h3 * h3)), 1.0 / (1.0 - q2 / (h4 * h4)))
 
-    def ratio(self, height: float) -> float:
-        """T/T_inf at a rotor height (m) above the ground."""
-        h = height if height > self.min_height else self.min_height
-        a = self.quarter_radius / h
-        return 1.0 / (1.0 - a * a)
-
-    def ratios(self, heights: tuple[float, ...]) -> tuple[float, ...]:
-        """T/T_inf for each rotor height (m)."""
-        return tuple(self.ratio(h) for h in heights)
+    return ratios

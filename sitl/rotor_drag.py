@@ -7,29 +7,27 @@ about the CG).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from bridge.airframe import RotorDragConfig
 
 Vec3 = tuple[float, float, float]
 
 
-class RotorDrag:
-    """A body wrench source: the sum over rotors of -w_i K v_i and its moment r_i x F_i."""
+def rotor_drag(config: RotorDragConfig, arms: tuple[Vec3, ...]) -> Callable[..., tuple[float, ...]]:
+    """A wrench source f(w1..w4 rad/s, hub airspeeds 12 floats m/s) -> (fx, fy, fz N, mx, my, mz N m), FRD."""
+    kd, kz = config.k_d, config.k_z
+    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3), (x4, y4, z4) = arms
 
-    def __init__(self, config: RotorDragConfig, arms: tuple[Vec3, ...]):
-        self.k_d = config.k_d
-        self.k_z = config.k_z
-        self.arms = arms
+    def wrench(w1: float, w2: float, w3: float, w4: float, a: tuple[float, ...]) -> tuple[float, ...]:
+        d1, d2, d3, d4 = -w1 * kd, -w2 * kd, -w3 * kd, -w4 * kd
+        fx1, fy1, fz1 = d1 * a[0], d1 * a[1], -w1 * kz * a[2]
+        fx2, fy2, fz2 = d2 * a[3], d2 * a[4], -w2 * kz * a[5]
+        fx3, fy3, fz3 = d3 * a[6], d3 * a[7], -w3 * kz * a[8]
+        fx4, fy4, fz4 = d4 * a[9], d4 * a[10], -w4 * kz * a[11]
+        return (fx1 + fx2 + fx3 + fx4, fy1 + fy2 + fy3 + fy4, fz1 + fz2 + fz3 + fz4,
+                (y1 * fz1 - z1 * fy1) + (y2 * fz2 - z2 * fy2) + (y3 * fz3 - z3 * fy3) + (y4 * fz4 - z4 * fy4),
+                (z1 * fx1 - x1 * fz1) + (z2 * fx2 - x2 * fz2) + (z3 * fx3 - x3 * fz3) + (z4 * fx4 - x4 * fz4),
+                (x1 * fy1 - y1 * fx1) + (x2 * fy2 - y2 * fx2) + (x3 * fy3 - y3 * fx3) + (x4 * fy4 - y4 * fx4))
 
-    def wrench(self, speeds: tuple[float, ...], airspeeds: tuple[Vec3, ...]) -> tuple[float, ...]:
-        """(fx, fy, fz N, mx, my, mz N m), FRD about the CG, for rotor speeds (rad/s) and hub airspeeds."""
-        kd, kz = self.k_d, self.k_z
-        fx = fy = fz = mx = my = mz = 0.0
-        for (x, y, z), w, (vx, vy, vz) in zip(self.arms, speeds, airspeeds):  # noqa: B905
-            ax, ay, az = -w * kd * vx, -w * kd * vy, -w * kz * vz
-            fx += ax
-            fy += ay
-            fz += az
-            mx += y * az - z * ay
-            my += z * ax - x * az
-            mz += x * ay - y * ax
-        return fx, fy, fz, mx, my, mz
+    return wrench

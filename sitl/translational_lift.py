@@ -6,16 +6,14 @@ and k_h in N/(m/s)^2.
 
 from __future__ import annotations
 
-Vec3 = tuple[float, float, float]
+from collections.abc import Callable
 
 
-class TranslationalLift:
-    """A thrust modifier (additive, per rotor)."""
+def translational_lift(k_h: float) -> Callable[[tuple[float, ...]], tuple[float, float, float, float]]:
+    """A thrust modifier (additive): f(hub airspeeds, 12 floats m/s FRD) -> each rotor's added thrust, N."""
 
-    def __init__(self, k_h: float):
-        self.k_h = k_h
+    def extra_thrust(a: tuple[float, ...]) -> tuple[float, float, float, float]:
+        return (k_h * (a[0] * a[0] + a[1] * a[1]), k_h * (a[3] * a[3] + a[4] * a[4]),
+                k_h * (a[6] * a[6] + a[7] * a[7]), k_h * (a[9] * a[9] + a[10] * a[10]))
 
-    def extra_thrust(self, airspeeds: tuple[Vec3, ...]) -> tuple[float, ...]:
-        """The added thrust of each rotor, N along -z body, for hub airspeeds (m/s FRD)."""
-        k = self.k_h
-        return tuple(k * (vx * vx + vy * vy) for vx, vy, _ in airspeeds)
+    return extra_thrust
