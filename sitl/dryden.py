@@ -19,6 +19,7 @@ from scipy.linalg import expm, solve_continuous_lyapunov
 from bridge.airframe import dryden_parameters
 
 Vec3 = tuple[float, float, float]
+NOISE_BLOCK = 4096  # steps of white noise drawn at once
 
 
 def dryden_psd(component: str, omega: np.ndarray, sigma: float, length: float, speed: float) -> np.ndarray:
@@ -67,19 +68,34 @@ class DrydenTurbulence:
             b = np.zeros((a.shape[0], 1))
             b[-1, 0] = 1.0
             parts.append(_discrete(a, b, c, self.sigma[i], dt))
-        self._ad = [p[0] for p in parts]
-        self._ld = [p[1] for p in parts]
-        self._c = [p[2] for p in parts]
-        self._x = [p[3] @ self._rng.standard_normal(p[3].shape[0]) for p in parts]  # stationary start
+        # plain floats from here on: one step per 4 ms exchange, numpy's per-call cost would dominate
+        (self._au,), (self._lu,) = parts[0][0].tolist(), parts[0][1].tolist()
+        self._av, self._lv = parts[1][0].tolist(), parts[1][1].tolist()
+        self._aw, self._lw = parts[2][0].tolist(), parts[2][1].tolist()
+        self._c = [p[2].tolist() for p in parts]
+        x0 = [(p[3] @ self._rng.standard_normal(p[3].shape[0])).tolist() for p in parts]  # stationary start
+        self._xu = x0[0][0]
+        self._xv = x0[1]
+        self._xw = x0[2]
+        self._noise: list[float] = []
 
     def current(self) -> Vec3:
         """The turbulence now, (u, v, w) m/s in the mean-wind axes."""
-        return tuple(float(c @ x) for c, x in zip(self._c, self._x))  # type: ignore[return-value]  # noqa: B905
+        (cu,), (cv0, cv1), (cw0, cw1) = self._c
+        return cu * self._xu, cv0 * self._xv[0] + cv1 * self._xv[1], cw0 * self._xw[0] + cw1 * self._xw[1]
 
     def step(self) -> Vec3:
         """Advance dt seconds; the new (u, v, w), m/s."""
-        noise = self._rng.standard_normal(5)
-        self._x = [self._ad[0] @ self._x[0] + self._ld[0] @ noise[0:1],
-                   self._ad[1] @ self._x[1] + self._ld[1] @ noise[1:3],
-                   self._ad[2] @ self._x[2] + self._ld[2] @ noise[3:5]]
+        if not self._noise:  # white noise drawn in blocks, 5 numbers a step, in a fixed order
+            self._noise = self._rng.standard_normal(5 * NOISE_BLOCK).tolist()[::-1]
+        pop = self._noise.pop
+        self._xu = self._au[0] * self._xu + self._lu[0] * pop()
+        self._xv = _second_order(self._av, self._lv, self._xv, pop(), pop())
+        self._xw = _second_order(self._aw, self._lw, self._xw, pop(), pop())
         return self.current()
+
+
+def _second_order(a: list, low: list, x: list, n0: float, n1: float) -> list[float]:
+    """x' = A x + L n for 2x2 A and lower-triangular L (lists of rows)."""
+    return [a[0][0] * x[0] + a[0][1] * x[1] + low[0][0] * n0,
+            a[1][0] * x[0] + a[1][1] * x[1] + low[1][0] * n0 + low[1][1] * n1]
