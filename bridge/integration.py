@@ -11,10 +11,15 @@ from collections.abc import Callable, Sequence
 Derivative = Callable[[Sequence[float], Sequence[float]], Sequence[float]]
 
 
-def rk4_step(f: Derivative, s: Sequence[float], u: Sequence[float], h: float) -> list[float]:
-    """One RK4 step of ds/dt = f(s, u) over h seconds, u held constant; returns the new state list."""
+def rk4_step(f: Derivative, s: Sequence[float], u: Sequence[float], h: float,
+             k1: Sequence[float] | None = None) -> list[float]:
+    """One RK4 step of ds/dt = f(s, u) over h seconds, u held constant; returns the new state list.
+
+    k1: f(s, u) when the caller already has it (it is then not evaluated again).
+    """
     hh = 0.5 * h
-    k1 = f(s, u)
+    if k1 is None:
+        k1 = f(s, u)
     # zip without strict=: all have the state's length by construction, and strict= doubles the cost here
     k2 = f([a + hh * b for a, b in zip(s, k1)], u)  # noqa: B905
     k3 = f([a + hh * b for a, b in zip(s, k2)], u)  # noqa: B905

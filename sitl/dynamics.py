@@ -134,6 +134,7 @@ class Quadrotor:
         self._wind_model: Wind | None = None
         self._specific_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._specific_force_at: tuple[int, int] = (-1, 0)  # (time_usec, id of the state list) it is for
+        self._slope: tuple[float, ...] | None = None  # the derivative it came from
         self._f = make_derivative(vehicle, self.motors, self.mixer, self._wind)
         self._cmd = (0.0, 0.0, 0.0, 0.0)
         self._s: list[float] = [0.0] * 17
@@ -182,6 +183,7 @@ class Quadrotor:
         self._cmd = speeds
         self._time_usec = 0
         self._on_ground = False
+        self._specific_force_at = (-1, 0)
         if self.vehicle.wind.active:  # the wind restarts with time (same seed: same wind)
             self._wind_model = Wind(self.vehicle.wind, EXCHANGE_STEP)
             self._wind[:] = self._wind_model.sample(0.0)
@@ -201,7 +203,7 @@ class Quadrotor:
         apply_ground = self.ground.apply
         s = self._s
         for _ in range(self.substeps):
-            s = rk4_step(f, s, cmd, h)
+            s = rk4_step(f, s, cmd, h, self._first_slope(s, cmd))
             qw, qx, qy, qz = s[6], s[7], s[8], s[9]
             n = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             s[6] = qw * n
@@ -213,6 +215,19 @@ class Quadrotor:
         self._time_usec += EXCHANGE_STEP_USEC
         if self._wind_model is not None:  # the wind over the next step, reported with this step's telemetry
             self._wind[:] = self._wind_model.sample(self._time_usec * 1e-6)
+
+    def _first_slope(self, s: list[float], cmd: Sequence[float]) -> list[float] | None:
+        """f(s, cmd) from the derivative the specific force was computed with at s (None if there is none).
+
+        Only the motor-lag rates depend on the command, so the cached derivative's first 13 entries hold; the
+        SITL asks for the specific force every step, which saves one of five derivative calls.
+        """
+        if self._paper or self._slope is None or self._specific_force_at != (self._time_usec, id(s)):
+            return None
+        d = self._slope
+        itm = self.motors.inv_time_constant
+        return [*d[:13], (cmd[0] - s[13]) * itm, (cmd[1] - s[14]) * itm, (cmd[2] - s[15]) * itm,
+                (cmd[3] - s[16]) * itm]
 
     def _derivative(self, s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
         """d(state)/dt for the 17-float state under commanded rotor speeds cmd (rad/s)."""
@@ -315,7 +330,7 @@ class Quadrotor:
         if not self._paper:  # R^T (a - g e3) from the derivative: every effect's force, already summed
             if self._specific_force_at == (self._time_usec, id(s)):
                 return self._specific_force
-            d = self._derivative(s, self._cmd)
+            d = self._slope = self._derivative(s, self._cmd)
             ax, ay, az = d[3], d[4], d[5] - self._g
             self._specific_force = (
                 (1.0 - 2.0 * (qy * qy + qz * qz)) * ax + 2.0 * (qx * qy + qw * qz) * ay
