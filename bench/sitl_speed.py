@@ -32,7 +32,8 @@ ECHO_READY = "echo ready"
 
 
 VEHICLES = ("fang-chen-buaa", "fang-chen-aero")
-AERO_WIND_FLAGS = ("--wind", "5,0,0", "--turbulence", "moderate", "--gust", "1,2,0,3,0")
+AERO_WIND_FLAGS = ("--wind", "5,0,0", "--turbulence", "moderate", "--gust", "1,2,0,3,0",
+                   "--initial-position", "0,0,-2000")  # airborne for the whole run
 
 
 def bench_vehicle(name: str):
