@@ -1,5 +1,9 @@
 """The SITL's exact equations of motion, as sympy expressions written from a vehicle file.
 
+Every effect the vehicle file switches on (rotor geometry and CG, rotor drag, translational lift, frame drag,
+ground effect: see airframe_expressions) is written exactly; wind is not (it is not one of the model's 16
+variables), so the expressions are the SITL's in still air, and the model file says so.
+
 Earth NED, body FRD, R = Rz(psi) Ry(theta) Rx(phi). With T = Ct f1, v_b = R^T v:
   a   = g e3 + R (0, 0, -T/m) + R (-Cd/m * v_b*|v_b|)                      (NED, m/s^2)
   J w' = -w x (J w) - w x (0, 0, h_z) + tau - D w                          (FRD, rad/s^2)
@@ -208,7 +212,10 @@ def true_model(vehicle: VehicleConfig | str | os.PathLike[str]) -> Model:
         kind="true-model",
         vehicle=vehicle_provenance(vehicle),
         flights=[],
-        engine={"name": "vehicle", "settings": {"source": "bridge.vehicle parameters, sitl dynamics"}},
+        engine={"name": "vehicle", "settings": {
+            "source": "bridge.vehicle parameters, sitl dynamics",
+            "wind": "excluded: not one of the model's 16 variables; the expressions are exact in still air",
+        }},
     )
 
 
