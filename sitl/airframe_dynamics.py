@@ -1,8 +1,8 @@
-"""The state derivative of a quadrotor with per-rotor geometry, aerodynamic effects and wind (PX4 SIH style).
+"""Body force and moment of a quadrotor with its own rotor geometry, aerodynamic effects and wind (PX4 SIH).
 
-Read the motors, compute each contribution to the body force and moment (FRD, about the CG), sum, and return
-d(state)/dt for the 17-float state of sitl.dynamics. With v_a = R^T (v - v_wind) the body airspeed (m/s, FRD)
-and v_i = v_a + w x r_i each hub's airspeed:
+Each contribution to the body force and moment (FRD, about the CG) is summed; sitl.dynamics integrates the
+rigid body. With v_a = R^T (v - v_wind) the body airspeed (m/s, FRD) and v_i = v_a + w x r_i each hub's
+airspeed:
 
     T_i = ground_effect(h_i) * (Ct_i w_i^2 + translational_lift(v_i))        rotor thrusts, N along -z
     F_b = sum_i (0, 0, -T_i) + rotor_drag(w_i, v_i) + frame_drag(v_a)        body force, N
@@ -17,13 +17,11 @@ step).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable
 
-from bridge.integration import Derivative
 from bridge.vehicle import VehicleConfig
 from sitl.frame_drag import frame_drag
 from sitl.ground_effect import ground_effect
-from sitl.motors import Motors
 from sitl.rotor_drag import rotor_drag
 from sitl.rotor_geometry import RotorGeometry
 from sitl.translational_lift import translational_lift
@@ -40,14 +38,11 @@ def inverse3(m: tuple) -> tuple:
     )
 
 
-def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[float]) -> Derivative:
-    """f(state, commanded speeds rad/s) -> 17 floats of a vehicle with effects; wind NED m/s read per call."""
-    itm = motors.inv_time_constant
-    g = vehicle.gravity
-    im = 1.0 / vehicle.mass
-    j00, j01, j02, j10, j11, j12, j20, j21, j22 = (x for row in vehicle.inertia for x in row)
-    i00, i01, i02, i10, i11, i12, i20, i21, i22 = inverse3(vehicle.inertia)
-    d0, d1, d2 = vehicle.drag.angular_damping
+def airframe_wrench(vehicle: VehicleConfig, wind: list[float]) -> Callable[..., tuple[float, ...]]:
+    """f(z, v NED, w FRD, rotor speeds, R row-major) -> (F_b N, M_b N m, h_z N m s), body FRD about the CG.
+
+    wind: NED m/s, read at every call. Rotor speeds in rad/s, z in m (NED), R body -> earth.
+    """
     geometry = RotorGeometry(vehicle)
     ct1, ct2, ct3, ct4 = geometry.thrust_coefficients
     aero = vehicle.aero
@@ -62,22 +57,9 @@ def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[
     heights = geometry.heights()
     rotor_wrench = geometry.wrench()
 
-    def derivative(s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
-        _, _, z, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
-        c1, c2, c3, c4 = cmd
-        # rotation body -> earth
-        xx, yy, zz = qx * qx, qy * qy, qz * qz
-        xy, xz, yz = qx * qy, qx * qz, qy * qz
-        wxq, wyq, wzq = qw * qx, qw * qy, qw * qz
-        r00 = 1.0 - 2.0 * (yy + zz)
-        r01 = 2.0 * (xy - wzq)
-        r02 = 2.0 * (xz + wyq)
-        r10 = 2.0 * (xy + wzq)
-        r11 = 1.0 - 2.0 * (xx + zz)
-        r12 = 2.0 * (yz - wxq)
-        r20 = 2.0 * (xz - wyq)
-        r21 = 2.0 * (yz + wxq)
-        r22 = 1.0 - 2.0 * (xx + yy)
+    def wrench(z: float, vx: float, vy: float, vz: float, wx: float, wy: float, wz: float,
+               w1: float, w2: float, w3: float, w4: float, r00: float, r01: float, r02: float, r10: float,
+               r11: float, r12: float, r20: float, r21: float, r22: float) -> tuple[float, ...]:
         # body airspeed R^T (v - wind)
         ex, ey, ez = vx - wind[0], vy - wind[1], vz - wind[2]
         ux = r00 * ex + r10 * ey + r20 * ez
@@ -96,37 +78,18 @@ def make_airframe_derivative(vehicle: VehicleConfig, motors: Motors, wind: list[
         fbx = fby = 0.0
         fbz = -thrust
         if drag is not None:
-            fx, fy, fz, mx_, my_, mz_ = drag(w1, w2, w3, w4, air)
+            fx, fy, fz, mx, my, mz = drag(w1, w2, w3, w4, air)
             fbx += fx
             fby += fy
             fbz += fz
-            tx += mx_
-            ty += my_
-            tz += mz_
+            tx += mx
+            ty += my
+            tz += mz
         if frame is not None:
             fx, fy, fz = frame(ux, uy, uz)
             fbx += fx
             fby += fy
             fbz += fz
-        ax = (r00 * fbx + r01 * fby + r02 * fbz) * im
-        ay = (r10 * fbx + r11 * fby + r12 * fbz) * im
-        az = (r20 * fbx + r21 * fby + r22 * fbz) * im + g
-        dqw = 0.5 * (-qx * wx - qy * wy - qz * wz)
-        dqx = 0.5 * (qw * wx + qy * wz - qz * wy)
-        dqy = 0.5 * (qw * wy - qx * wz + qz * wx)
-        dqz = 0.5 * (qw * wz + qx * wy - qy * wx)
-        hx = j00 * wx + j01 * wy + j02 * wz
-        hy = j10 * wx + j11 * wy + j12 * wz
-        hzb = j20 * wx + j21 * wy + j22 * wz + hz
-        mx = tx - (wy * hzb - wz * hy) - d0 * wx
-        my = ty - (wz * hx - wx * hzb) - d1 * wy
-        mz = tz - (wx * hy - wy * hx) - d2 * wz
-        return (
-            vx, vy, vz, ax, ay, az, dqw, dqx, dqy, dqz,
-            i00 * mx + i01 * my + i02 * mz,
-            i10 * mx + i11 * my + i12 * mz,
-            i20 * mx + i21 * my + i22 * mz,
-            (c1 - w1) * itm, (c2 - w2) * itm, (c3 - w3) * itm, (c4 - w4) * itm,
-        )
+        return fbx, fby, fbz, tx, ty, tz, hz
 
-    return derivative
+    return wrench

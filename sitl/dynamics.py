@@ -22,7 +22,7 @@ from collections.abc import Sequence
 
 from bridge.integration import Derivative, rk4_step
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
-from sitl.airframe_dynamics import inverse3, make_airframe_derivative
+from sitl.airframe_dynamics import airframe_wrench, inverse3
 from sitl.ground import make_ground
 from sitl.mixer import QuadXMixer
 from sitl.motors import Motors
@@ -36,10 +36,11 @@ def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
     """The state derivative f(state, cmd) -> 17 floats, constants bound once.
 
     The paper's physics (VehicleConfig.paper_physics) take the closed form of the module docstring; any other
-    vehicle (its own rotor geometry, effects, wind) sitl.airframe_dynamics, which reads `wind` (NED m/s).
+    vehicle (its own rotor geometry, effects, wind) its body wrench from sitl.airframe_dynamics, which reads
+    `wind` (NED m/s) at every call. The rigid body (translation, attitude, rotation, motor lag) is shared.
     """
-    if not vehicle.paper_physics:
-        return make_airframe_derivative(vehicle, motors, wind if wind is not None else [0.0, 0.0, 0.0])
+    paper = vehicle.paper_physics
+    body_wrench = None if paper else airframe_wrench(vehicle, wind if wind is not None else [0.0, 0.0, 0.0])
     itm = motors.inv_time_constant
     ct, k, cm, jm = mixer.ct, mixer.k, mixer.cm, mixer.jm
     g = vehicle.gravity
@@ -51,20 +52,13 @@ def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
     d0, d1, d2 = vehicle.drag.angular_damping
 
     def derivative(s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
-        _, _, _, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
+        _, _, z, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
         # motors: first-order lag toward the commanded speeds
         c1, c2, c3, c4 = cmd
         dw1 = (c1 - w1) * itm
         dw2 = (c2 - w2) * itm
         dw3 = (c3 - w3) * itm
         dw4 = (c4 - w4) * itm
-        # forces and moments of the rotors (body FRD): QuadXMixer.wrench, inlined as this is the hot path
-        s1, s2, s3, s4 = w1 * w1, w2 * w2, w3 * w3, w4 * w4
-        thrust = ct * (s1 + s2 + s3 + s4)
-        tx = k * (-s1 + s2 + s3 - s4)
-        ty = k * (s1 - s2 + s3 - s4)
-        tz = cm * (s1 + s2 - s3 - s4)
-        hz = jm * (-w1 - w2 + w3 + w4)
         # rotation body -> earth
         xx, yy, zz = qx * qx, qy * qy, qz * qz
         xy, xz, yz = qx * qy, qx * qz, qy * qz
@@ -78,17 +72,28 @@ def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
         r20 = 2.0 * (xz - wyq)
         r21 = 2.0 * (yz + wxq)
         r22 = 1.0 - 2.0 * (xx + yy)
-        # body-frame force: thrust and quadratic drag on the body-frame velocity R^T v
-        fbz = -thrust
-        if has_drag:
-            ubx = r00 * vx + r10 * vy + r20 * vz
-            uby = r01 * vx + r11 * vy + r21 * vz
-            ubz = r02 * vx + r12 * vy + r22 * vz
-            fbx = -cdx * ubx * abs(ubx)
-            fby = -cdy * uby * abs(uby)
-            fbz -= cdz * ubz * abs(ubz)
+        if not paper:  # every effect's force and moment, body FRD about the CG
+            fbx, fby, fbz, tx, ty, tz, hz = body_wrench(z, vx, vy, vz, wx, wy, wz, w1, w2, w3, w4,
+                                                        r00, r01, r02, r10, r11, r12, r20, r21, r22)
         else:
-            fbx = fby = 0.0
+            # forces and moments of the rotors (body FRD): QuadXMixer.wrench, inlined as this is the hot path
+            s1, s2, s3, s4 = w1 * w1, w2 * w2, w3 * w3, w4 * w4
+            thrust = ct * (s1 + s2 + s3 + s4)
+            tx = k * (-s1 + s2 + s3 - s4)
+            ty = k * (s1 - s2 + s3 - s4)
+            tz = cm * (s1 + s2 - s3 - s4)
+            hz = jm * (-w1 - w2 + w3 + w4)
+            # body-frame force: thrust and quadratic drag on the body-frame velocity R^T v
+            fbz = -thrust
+            if has_drag:
+                ubx = r00 * vx + r10 * vy + r20 * vz
+                uby = r01 * vx + r11 * vy + r21 * vz
+                ubz = r02 * vx + r12 * vy + r22 * vz
+                fbx = -cdx * ubx * abs(ubx)
+                fby = -cdy * uby * abs(uby)
+                fbz -= cdz * ubz * abs(ubz)
+            else:
+                fbx = fby = 0.0
         # translational: a = g e3 + R F_b / m
         ax = (r00 * fbx + r01 * fby + r02 * fbz) * im
         ay = (r10 * fbx + r11 * fby + r12 * fbz) * im

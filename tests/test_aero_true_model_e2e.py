@@ -43,30 +43,28 @@ def validate_r2(tmp_path, flight) -> dict[str, float]:
     return {row["target"]: float(row["r2"]) for row in rows}
 
 
-def test_open_loop_from_altitude(tmp_path):
-    sitl = SitlProcess(["--vehicle", VEHICLE, "--hil", "udp:127.0.0.1:0", "--no-gcs", "--ground", "none",
-                        "--initial-position", "0,0,-200", "--sensors", "ideal", "--status-interval", "0"])
+def fly(tmp_path, sitl_flags: list[str], excite_flags: list[str]):
+    """A flight of the vehicle: its SITL with these flags, `quadsr excite` with these; the .tlog's path."""
+    sitl = SitlProcess(["--vehicle", VEHICLE, "--hil", "udp:127.0.0.1:0", "--no-gcs", "--sensors", "ideal",
+                        "--status-interval", "0", *sitl_flags])
     try:
-        flight = tmp_path / "validate.tlog"
-        run = excite("--profile", "paper-validate", "--hil", sitl.hil, "--duration", "4",
-                     "--out", str(flight))
+        flight = tmp_path / "flight.tlog"
+        run = excite(*excite_flags, "--hil", sitl.hil, "--out", str(flight))
         assert run.returncode == 0, run.stderr
     finally:
         sitl.stop()
+    return flight
+
+
+def test_open_loop_from_altitude(tmp_path):
+    flight = fly(tmp_path, ["--ground", "none", "--initial-position", "0,0,-200"],
+                 ["--profile", "paper-validate", "--duration", "4"])
     fit = validate_r2(tmp_path, flight)
     assert len(fit) == 6 and min(fit.values()) >= R2_FLOOR, fit
 
 
 def test_closed_loop_from_the_ground(tmp_path):
-    sitl = SitlProcess(["--vehicle", VEHICLE, "--hil", "udp:127.0.0.1:0", "--no-gcs", "--sensors", "ideal",
-                        "--status-interval", "0"])
-    try:
-        flight = tmp_path / "closed.tlog"
-        run = excite("--profile", "closed-loop", "--hil", sitl.hil, "--duration", "9", "--seed", "2",
-                     "--out", str(flight))
-        assert run.returncode == 0, run.stderr
-    finally:
-        sitl.stop()
+    flight = fly(tmp_path, [], ["--profile", "closed-loop", "--duration", "9", "--seed", "2"])
     fit = validate_r2(tmp_path, flight)
     assert len(fit) == 6 and min(fit.values()) >= R2_FLOOR_CLOSED_LOOP, fit
     # the vehicle left the ground and met the ground effect on the way (its rows near z = 0 are in the fit)

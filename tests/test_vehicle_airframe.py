@@ -38,7 +38,6 @@ def test_the_aero_vehicle_is_the_paper_airframe_with_every_effect_on():
     assert all(c > 0 for c in aero.aero.frame_drag) and aero.aero.ground_effect is not None
     assert any(aero.center_of_gravity) and aero.motor_curve.kind == "px4"
     assert not aero.wind.active  # wind comes from `quadsr sitl --wind ...`
-    # PX4's Iris: a wide frame is expressible
     assert aero.motor_curve.max_speed == pytest.approx(1006.6)
 
 
