@@ -14,8 +14,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from bridge.airframe import (
+    AeroConfig,
+    RotorConfig,
+    WindConfig,
+    parse_aero,
+    parse_rotors,
+    parse_wind,
+    quad_x_rotors,
+)
 from bridge.errors import UserError
 from bridge.yaml_file import describe_value, float_value, load_yaml_file
+from bridge.yaml_section import Section, vec3_value
 
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
@@ -25,31 +35,72 @@ SENSOR_PRESETS = ("realistic", "ideal")
 GROUND_MODELS = ("plane", "none")
 
 
+THRUST_MODELS = ("linear", "px4", "polynomial")
+
+
 @dataclass(frozen=True)
 class MotorCurve:
-    """Throttle sigma in [0, 1] <-> steady rotor speed w = Cr*sigma + wb (rad/s), clipped to [0, w_max]."""
+    """Throttle sigma in [0, 1] <-> steady rotor speed w (rad/s), one of three curves:
 
-    curve_slope: float  # Cr, rad/s per unit throttle
-    curve_offset: float  # wb, rad/s
+    linear (the paper's): w = Cr*sigma + wb clipped to [0, w_max], w_max = Cr + wb;
+    px4 (PX4's THR_MDL_FAC = f: thrust, so w^2, is (1-f) s + f s^2 of full): w = w_max sqrt((1-f) s + f s^2);
+    polynomial: w = c0 + c1 s + c2 s^2 + ... (increasing on [0, 1]) clipped to [0, w_max], w_max = p(1).
+    """
+
+    curve_slope: float = 0.0  # Cr, rad/s per unit throttle (linear)
+    curve_offset: float = 0.0  # wb, rad/s (linear)
+    kind: str = "linear"  # linear | px4 | polynomial
+    full_speed: float = 0.0  # rad/s at full throttle (px4)
+    thr_mdl_fac: float = 0.0  # PX4's THR_MDL_FAC in [0, 1] (px4)
+    coefficients: tuple[float, ...] = ()  # c0, c1, ... rad/s (polynomial)
 
     @property
     def max_speed(self) -> float:
-        """Steady rotor speed at full throttle, rad/s (Cr + wb)."""
+        """Steady rotor speed at full throttle, rad/s."""
+        if self.kind == "px4":
+            return self.full_speed
+        if self.kind == "polynomial":
+            return sum(self.coefficients)
         return self.curve_slope + self.curve_offset
+
+    def _raw_speed(self, s: float) -> float:
+        """The curve's formula at throttle s in [0, 1], before clipping (rad/s)."""
+        if self.kind == "px4":
+            f = self.thr_mdl_fac
+            return self.full_speed * math.sqrt(max((1.0 - f) * s + f * s * s, 0.0))
+        if self.kind == "polynomial":
+            out = 0.0
+            for c in reversed(self.coefficients):
+                out = out * s + c
+            return out
+        return self.curve_slope * s + self.curve_offset
 
     def speed_for_throttle(self, sigma: float) -> float:
         """Steady rotor speed (rad/s) for throttle sigma (clipped to [0, 1] first)."""
         s = min(max(sigma, 0.0), 1.0)
-        return min(max(self.curve_slope * s + self.curve_offset, 0.0), self.max_speed)
+        return min(max(self._raw_speed(s), 0.0), self.max_speed)
 
     def throttle_for_speed(self, w: float) -> float:
         """Throttle in [0, 1] giving steady speed w (rad/s); w is clipped to [0, w_max] first.
 
-        w <= 0 maps to -wb/Cr (0.123 for the default vehicle): the largest throttle that still gives 0 rad/s,
+        w <= 0 maps to the largest throttle that still gives 0 rad/s (-wb/Cr = 0.123 for the default vehicle),
         so the inverse is continuous over [0, w_max] and speed_for_throttle(throttle_for_speed(w)) == w.
         """
         wc = min(max(w, 0.0), self.max_speed)
-        return min(max((wc - self.curve_offset) / self.curve_slope, 0.0), 1.0)
+        if self.kind == "linear":
+            return min(max((wc - self.curve_offset) / self.curve_slope, 0.0), 1.0)
+        if self.kind == "px4":
+            r, f = (wc / self.full_speed) ** 2, self.thr_mdl_fac
+            s = r if f == 0.0 else (-(1.0 - f) + math.sqrt((1.0 - f) ** 2 + 4.0 * f * r)) / (2.0 * f)
+            return min(max(s, 0.0), 1.0)
+        lo, hi = 0.0, 1.0  # polynomial: increasing on [0, 1], bisection (52 halvings reach float precision)
+        for _ in range(52):
+            mid = 0.5 * (lo + hi)
+            if self._raw_speed(mid) <= wc:
+                lo = mid
+            else:
+                hi = mid
+        return lo
 
     @staticmethod
     def hover_speed(mass: float, gravity: float, thrust_coefficient: float) -> float:
@@ -65,6 +116,8 @@ class MotorConfig:
     curve_slope: float  # Cr, rad/s
     curve_offset: float  # wb, rad/s
     rotor_inertia: float  # Jm, kg m^2 (rotor + motor bell about the shaft, for the gyroscopic torque)
+    curve: MotorCurve | None = None  # the throttle curve when not the linear one of curve_slope/curve_offset
+    speed_noise: float = 0.0  # rad/s, std of white noise on each commanded rotor speed (0: off)
 
 
 @dataclass(frozen=True)
@@ -190,10 +243,34 @@ class VehicleConfig:
     home: HomeConfig
     source_path: Path | None = None
 
+    rotors: tuple[RotorConfig, ...] = ()  # PX4 motor order; () means the Quad-X from arm_length
+    center_of_gravity: Vec3 = (0.0, 0.0, 0.0)  # m, FRD, from the centre the rotor positions are measured from
+    aero: AeroConfig = AeroConfig()
+    wind: WindConfig = WindConfig()
+
     @property
     def motor_curve(self) -> MotorCurve:
         """The throttle <-> steady rotor speed curve."""
+        if self.motor.curve is not None:
+            return self.motor.curve
         return MotorCurve(self.motor.curve_slope, self.motor.curve_offset)
+
+    @property
+    def rotor_set(self) -> tuple[RotorConfig, ...]:
+        """The four rotors in PX4 order (the Quad-X from arm_length unless the file lists them)."""
+        return self.rotors or quad_x_rotors(self.arm_length, self.thrust_coefficient, self.moment_coefficient)
+
+    @property
+    def rotor_arms(self) -> tuple[Vec3, ...]:
+        """Each rotor hub's position relative to the centre of gravity, m, body FRD."""
+        cx, cy, cz = self.center_of_gravity
+        return tuple((r.position[0] - cx, r.position[1] - cy, r.position[2] - cz) for r in self.rotor_set)
+
+    @property
+    def paper_physics(self) -> bool:
+        """True for the paper's model: Quad-X from arm_length, CG at the centre, no effect, wind or noise."""
+        return (not self.rotors and not any(self.center_of_gravity) and not self.aero.active
+                and not self.wind.active and self.motor.speed_noise == 0.0)
 
     @property
     def hover_speed(self) -> float:
@@ -212,6 +289,7 @@ class VehicleConfig:
         sensors: str | None = None,
         seed: int | None = None,
         initial_yaw: float | None = None,
+        wind: WindConfig | None = None,
     ) -> VehicleConfig:
         """A copy with CLI-style overrides applied (validated like the file)."""
         where = f"override of vehicle {self.name}"
@@ -221,7 +299,7 @@ class VehicleConfig:
                 raise UserError(f"{where}: ground must be one of {', '.join(GROUND_MODELS)}, got {ground!r}")
             cfg = dataclasses.replace(cfg, ground=ground)
         if initial_position is not None or initial_yaw is not None:
-            pos = cfg.initial.position if initial_position is None else _vec3_value(where, "initial.position",
+            pos = cfg.initial.position if initial_position is None else vec3_value(where, "initial.position",
                                                                                       initial_position)
             yaw = cfg.initial.yaw if initial_yaw is None else float_value(where, "initial.yaw", initial_yaw)
             cfg = dataclasses.replace(cfg, initial=InitialConfig(pos, yaw))
@@ -234,6 +312,8 @@ class VehicleConfig:
             if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
                 raise UserError(f"{where}: seed must be an integer >= 0, got {seed!r}")
             cfg = dataclasses.replace(cfg, simulation=dataclasses.replace(cfg.simulation, seed=seed))
+        if wind is not None:
+            cfg = dataclasses.replace(cfg, wind=wind)
         _check_initial(where, cfg)
         return cfg
 
@@ -294,100 +374,15 @@ def load_vehicle(path_or_name: str | Path) -> VehicleConfig:
 # Validation
 
 
-class _Section:
-    """Reads one mapping of the file, tracking the dotted key path and rejecting unknown keys."""
-
-    def __init__(self, where: str, data: Any, prefix: str):
-        self.where = where
-        self.prefix = prefix
-        if not isinstance(data, dict):
-            what = f"key '{prefix}'" if prefix else "the top level"
-            raise UserError(f"{where}: {what} must be a mapping, got {describe_value(data)}")
-        self.data = data
-        self.used: set[str] = set()
-
-    def key(self, name: str) -> str:
-        return f"{self.prefix}.{name}" if self.prefix else name
-
-    def raw(self, name: str, default: Any = ...) -> Any:
-        self.used.add(name)
-        if name not in self.data:
-            if default is ...:
-                raise UserError(f"{self.where}: missing key '{self.key(name)}'",
-                                hint="see sitl/vehicles/fang-chen-buaa.yaml for every key with its unit")
-            return default
-        return self.data[name]
-
-    def section(self, name: str) -> _Section:
-        return _Section(self.where, self.raw(name), self.key(name))
-
-    def number(self, name: str, *, positive: bool = False, nonnegative: bool = False,
-               default: Any = ...) -> float:
-        value = float_value(self.where, self.key(name), self.raw(name, default))
-        _check_sign(self.where, self.key(name), value, positive, nonnegative)
-        return value
-
-    def integer(self, name: str, *, nonnegative: bool = True, default: Any = ...) -> int:
-        value = self.raw(name, default)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise UserError(f"{self.where}: key '{self.key(name)}' must be an integer, "
-                            f"got {describe_value(value)}")
-        if nonnegative and value < 0:
-            raise UserError(f"{self.where}: key '{self.key(name)}' must be >= 0, got {value}")
-        return value
-
-    def text(self, name: str, choices: tuple[str, ...] | None = None, default: Any = ...) -> str:
-        value = self.raw(name, default)
-        if not isinstance(value, str):
-            raise UserError(f"{self.where}: key '{self.key(name)}' must be a string, "
-                            f"got {describe_value(value)}")
-        if choices is not None and value not in choices:
-            raise UserError(f"{self.where}: key '{self.key(name)}' must be one of {', '.join(choices)}, "
-                            f"got {value!r}")
-        return value
-
-    def vec3(self, name: str, *, nonnegative: bool = False, scalar_ok: bool = False,
-             default: Any = ...) -> Vec3:
-        value = self.raw(name, default)
-        if scalar_ok and not isinstance(value, (list, tuple)):
-            v = float_value(self.where, self.key(name), value)
-            out = (v, v, v)
-        else:
-            out = _vec3_value(self.where, self.key(name), value)
-        for v in out:
-            _check_sign(self.where, self.key(name), v, False, nonnegative)
-        return out
-
-    def done(self) -> None:
-        unknown = [k for k in self.data if k not in self.used]
-        if unknown:
-            known = ", ".join(sorted(self.used))
-            raise UserError(f"{self.where}: unknown key '{self.key(str(unknown[0]))}'",
-                            hint=f"keys allowed here: {known}")
-
-
-def _vec3_value(where: str, key: str, value: Any) -> Vec3:
-    if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise UserError(f"{where}: key '{key}' must be a list of 3 numbers, got {describe_value(value)}")
-    return tuple(float_value(where, f"{key}[{i}]", v) for i, v in enumerate(value))  # type: ignore[return-value]
-
-
-def _check_sign(where: str, key: str, value: float, positive: bool, nonnegative: bool) -> None:
-    if positive and not value > 0:
-        raise UserError(f"{where}: key '{key}' must be > 0, got {value:g}")
-    if nonnegative and not value >= 0:
-        raise UserError(f"{where}: key '{key}' must be >= 0, got {value:g}")
-
-
-def _inertia(sec: _Section) -> Mat3:
+def _inertia(sec: Section) -> Mat3:
     key = sec.key("inertia")
     value = sec.raw("inertia")
     is_seq = isinstance(value, (list, tuple)) and len(value) == 3
     if is_seq and all(not isinstance(v, (list, tuple)) for v in value):
-        d = _vec3_value(sec.where, key, value)  # the diagonal only
+        d = vec3_value(sec.where, key, value)  # the diagonal only
         mat = ((d[0], 0.0, 0.0), (0.0, d[1], 0.0), (0.0, 0.0, d[2]))
     elif is_seq:
-        mat = tuple(_vec3_value(sec.where, f"{key}[{i}]", row) for i, row in enumerate(value))  # type: ignore
+        mat = tuple(vec3_value(sec.where, f"{key}[{i}]", row) for i, row in enumerate(value))  # type: ignore
     else:
         raise UserError(f"{sec.where}: key '{key}' must be 3 diagonal values or a 3x3 matrix (kg m^2), "
                         f"got {describe_value(value)}")
@@ -424,7 +419,7 @@ def _check_initial(where: str, cfg: VehicleConfig) -> None:
 def _parse(where: str, data: Any, path: Path) -> VehicleConfig:
     if data is None:
         raise UserError(f"{where}: the file is empty")
-    top = _Section(where, data, "")
+    top = Section(where, data, "")
     name = top.text("name")
     mass = top.number("mass", positive=True)
     gravity = top.number("gravity", nonnegative=True)
@@ -433,17 +428,11 @@ def _parse(where: str, data: Any, path: Path) -> VehicleConfig:
     ct = top.number("thrust_coefficient", positive=True)
     cm = top.number("moment_coefficient", positive=True)
 
-    ms = top.section("motor")
-    motor = MotorConfig(
-        time_constant=ms.number("time_constant", positive=True),
-        curve_slope=ms.number("curve_slope", positive=True),
-        curve_offset=ms.number("curve_offset"),
-        rotor_inertia=ms.number("rotor_inertia", nonnegative=True),
-    )
-    ms.done()
-    if motor.curve_slope + motor.curve_offset <= 0:
-        raise UserError(f"{where}: keys 'motor.curve_slope' + 'motor.curve_offset' (the full-throttle speed) "
-                        f"must be > 0, got {motor.curve_slope + motor.curve_offset:g} rad/s")
+    motor = _parse_motor(top.section("motor"))
+
+    rotors, cg = parse_rotors(top, arm, ct, cm)
+    aero = parse_aero(top.optional_section("aerodynamics"))
+    wind = parse_wind(top.optional_section("wind"))
 
     ds = top.section("drag")
     drag = DragConfig(
@@ -482,13 +471,56 @@ def _parse(where: str, data: Any, path: Path) -> VehicleConfig:
     cfg = VehicleConfig(
         name=name, mass=mass, gravity=gravity, inertia=inertia, arm_length=arm, thrust_coefficient=ct,
         moment_coefficient=cm, motor=motor, drag=drag, ground=ground, initial=initial, simulation=simulation,
-        sensors=sensors, home=home, source_path=path,
+        sensors=sensors, home=home, source_path=path, rotors=rotors if top.has("rotors") else (),
+        center_of_gravity=cg, aero=aero, wind=wind,
     )
     _check_initial(where, cfg)
     return cfg
 
 
-def _parse_sensors(sec: _Section) -> SensorsConfig:
+def _parse_motor(ms: Section) -> MotorConfig:
+    kind = ms.text("thrust_model", THRUST_MODELS, default="linear")
+    where = ms.where
+    slope = offset = 0.0
+    curve = None
+    if kind == "linear":
+        slope = ms.number("curve_slope", positive=True)
+        offset = ms.number("curve_offset")
+        if slope + offset <= 0:
+            raise UserError(f"{where}: keys 'motor.curve_slope' + 'motor.curve_offset' (the full-throttle "
+                            f"speed) must be > 0, got {slope + offset:g} rad/s")
+    elif kind == "px4":
+        full = ms.number("max_speed", positive=True)
+        fac = ms.number("thr_mdl_fac", nonnegative=True)
+        if fac > 1.0:
+            raise UserError(f"{where}: key 'motor.thr_mdl_fac' must be within [0, 1] (PX4's THR_MDL_FAC), "
+                            f"got {fac:g}")
+        curve = MotorCurve(kind="px4", full_speed=full, thr_mdl_fac=fac)
+    else:
+        coeffs = ms.raw("coefficients")
+        if not isinstance(coeffs, list) or not 1 <= len(coeffs) <= 8:
+            raise UserError(f"{where}: key 'motor.coefficients' must be a list of 1 to 8 numbers c0, c1, ... "
+                            "(rad/s): w = c0 + c1*sigma + c2*sigma^2 + ...")
+        values = tuple(float_value(where, f"motor.coefficients[{i}]", c) for i, c in enumerate(coeffs))
+        curve = MotorCurve(kind="polynomial", coefficients=values)
+        grid = [curve._raw_speed(i / 200.0) for i in range(201)]
+        if curve.max_speed <= 0 or any(b < a for a, b in zip(grid, grid[1:])):  # noqa: B905
+            raise UserError(f"{where}: key 'motor.coefficients' must give a speed that rises with throttle "
+                            "on [0, 1] and is > 0 at full throttle",
+                            hint="check the signs of the coefficients")
+    motor = MotorConfig(
+        time_constant=ms.number("time_constant", positive=True),
+        curve_slope=slope,
+        curve_offset=offset,
+        rotor_inertia=ms.number("rotor_inertia", nonnegative=True),
+        curve=curve,
+        speed_noise=ms.number("speed_noise", nonnegative=True, default=0.0),
+    )
+    ms.done()
+    return motor
+
+
+def _parse_sensors(sec: Section) -> SensorsConfig:
     preset = sec.text("preset", SENSOR_PRESETS)
 
     def imu(name: str) -> ImuNoiseConfig:

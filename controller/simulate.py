@@ -20,6 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 import sympy
 
+from bridge.integration import rk4_step
 from controller.derivation import normalise
 from controller.plugin import Controller, Trajectory, VehicleState
 from identification.model_file import INPUT_NAMES, STATE_NAMES, SYMBOLS, TARGET_NAMES
@@ -94,13 +95,7 @@ class ModelPlant:
             self._s[12:16] = cmd
         h = self.dt / self.substeps
         for _ in range(self.substeps):
-            s = self._s
-            k1 = self._deriv(s, cmd)
-            k2 = self._deriv([a + 0.5 * h * b for a, b in zip(s, k1, strict=True)], cmd)
-            k3 = self._deriv([a + 0.5 * h * b for a, b in zip(s, k2, strict=True)], cmd)
-            k4 = self._deriv([a + h * b for a, b in zip(s, k3, strict=True)], cmd)
-            self._s = [a + h / 6.0 * (b + 2.0 * (c + d) + e)
-                       for a, b, c, d, e in zip(s, k1, k2, k3, k4, strict=True)]
+            self._s = rk4_step(self._deriv, self._s, cmd, h)
             self._apply_ground()
 
     def _apply_ground(self) -> None:

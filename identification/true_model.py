@@ -1,5 +1,9 @@
 """The SITL's exact equations of motion, as sympy expressions written from a vehicle file.
 
+Every effect the vehicle file switches on (rotor geometry and CG, rotor drag, translational lift, frame drag,
+ground effect: see airframe_expressions) is written exactly; wind is not (it is not one of the model's 16
+variables), so the expressions are the SITL's in still air, and the model file says so.
+
 Earth NED, body FRD, R = Rz(psi) Ry(theta) Rx(phi). With T = Ct f1, v_b = R^T v:
   a   = g e3 + R (0, 0, -T/m) + R (-Cd/m * v_b*|v_b|)                      (NED, m/s^2)
   J w' = -w x (J w) - w x (0, 0, h_z) + tau - D w                          (FRD, rad/s^2)
@@ -61,9 +65,14 @@ def _inertia(vehicle: VehicleConfig) -> np.ndarray:
 
 
 def true_model_expressions(vehicle: VehicleConfig | str | os.PathLike[str]) -> dict[str, sympy.Expr]:
-    """The six targets (ax, ay, az NED m/s^2; dwx, dwy, dwz FRD rad/s^2) exactly as the SITL computes them."""
+    """The six targets (ax, ay, az NED m/s^2; dwx, dwy, dwz FRD rad/s^2) exactly as the SITL computes them.
+
+    Wind is left out (it is not one of the model's 16 variables): the expressions are exact in still air.
+    """
     if not isinstance(vehicle, VehicleConfig):
         vehicle = load_vehicle(vehicle)
+    if vehicle.rotors or any(vehicle.center_of_gravity) or vehicle.aero.active:
+        return airframe_expressions(vehicle)
     s = SYMBOLS
     m, g = vehicle.mass, vehicle.gravity
     ct, cm = vehicle.thrust_coefficient, vehicle.moment_coefficient
@@ -124,6 +133,62 @@ def true_model_expressions(vehicle: VehicleConfig | str | os.PathLike[str]) -> d
     return {name: out[name] for name in TARGET_NAMES}
 
 
+def _at_least(h: sympy.Expr, floor: float) -> sympy.Expr:
+    """max(h, floor) with Abs, the building block the model file allows: (h + floor + |h - floor|) / 2."""
+    return (h + _f(floor) + sympy.Abs(h - _f(floor))) / 2
+
+
+def airframe_expressions(vehicle: VehicleConfig) -> dict[str, sympy.Expr]:
+    """The six targets of a vehicle with its own rotor geometry and effects (as sitl.airframe_dynamics).
+
+    Still air: v_a = R^T v (m/s FRD); each hub's airspeed v_i = v_a + w x r_i; thrust
+    T_i = GE(h_i) (Ct_i u_i^2 + k_h (v_ix^2 + v_iy^2)) with GE = 1/(1 - (R/(4 max(h_i, h_min)))^2),
+    h_i = -(z + (R r_i)_z) (with a ground plane only); rotor force (0, 0, -T_i) - u_i diag(k_d, k_d, k_z) v_i
+    at r_i; frame drag
+    -(|v_a| C + diag(Cd |v_a,j|)) v_a; yaw torque -s_i Cm_i u_i^2; h_z = Jm sum s_i u_i.
+    """
+    s = SYMBOLS
+    rot = rotation_matrix_sym(s["phi"], s["theta"], s["psi"])
+    ua = rot.T * sympy.Matrix([s["vx"], s["vy"], s["vz"]])
+    w = sympy.Matrix([s["wx"], s["wy"], s["wz"]])
+    aero = vehicle.aero
+    force = sympy.zeros(3, 1)
+    moment = sympy.zeros(3, 1)
+    hz = sympy.Integer(0)
+    ground = aero.ground_effect if vehicle.ground == "plane" else None
+    for i, (rotor, arm) in enumerate(zip(vehicle.rotor_set, vehicle.rotor_arms, strict=True)):
+        u = s[f"u{i + 1}"]
+        r = sympy.Matrix([_f(c) for c in arm])
+        vi = ua + w.cross(r)
+        thrust = _f(rotor.thrust_coefficient) * u**2
+        if aero.translational_lift:
+            thrust = thrust + _f(aero.translational_lift) * (vi[0] ** 2 + vi[1] ** 2)
+        if ground is not None:
+            h = _at_least(-(s["z"] + (rot * r)[2]), ground.min_height)
+            thrust = thrust / (1 - _f((ground.rotor_radius / 4.0) ** 2) / h**2)
+        f_i = sympy.Matrix([0, 0, -thrust])
+        if aero.rotor_drag is not None:
+            kd, kz = _f(aero.rotor_drag.k_d), _f(aero.rotor_drag.k_z)
+            f_i = f_i - u * sympy.Matrix([kd * vi[0], kd * vi[1], kz * vi[2]])
+        force += f_i
+        moment += r.cross(f_i)
+        moment[2] += _f(-rotor.spin_z * rotor.moment_coefficient) * u**2
+        hz += _f(rotor.spin_z * vehicle.motor.rotor_inertia) * u
+    speed = sympy.sqrt(ua[0] ** 2 + ua[1] ** 2 + ua[2] ** 2)
+    for j in range(3):
+        c, cd = aero.frame_drag[j], vehicle.drag.body_quadratic[j]
+        if c or cd:
+            force[j] += -(_f(c) * speed + _f(cd) * sympy.Abs(ua[j])) * ua[j]
+    inertia = _inertia(vehicle)
+    jmat = sympy.Matrix(3, 3, lambda a, b: _f(inertia[a, b]))
+    jinv = sympy.Matrix(3, 3, lambda a, b: _f(np.linalg.inv(inertia)[a, b]))
+    damping = sympy.Matrix([_f(d) for d in vehicle.drag.angular_damping])
+    torque = moment - w.cross(jmat * w + sympy.Matrix([0, 0, hz])) - damping.multiply_elementwise(w)
+    accel = sympy.Matrix([0, 0, _f(vehicle.gravity)]) + rot * force / _f(vehicle.mass)
+    dw = jinv * torque
+    return dict(zip(TARGET_NAMES, [*accel, *dw], strict=True))
+
+
 def vehicle_provenance(vehicle: VehicleConfig) -> dict[str, Any]:
     """{name, file, sha256} of the vehicle a model was written from or flown with."""
     info: dict[str, Any] = {"name": vehicle.name}
@@ -147,7 +212,10 @@ def true_model(vehicle: VehicleConfig | str | os.PathLike[str]) -> Model:
         kind="true-model",
         vehicle=vehicle_provenance(vehicle),
         flights=[],
-        engine={"name": "vehicle", "settings": {"source": "bridge.vehicle parameters, sitl dynamics"}},
+        engine={"name": "vehicle", "settings": {
+            "source": "bridge.vehicle parameters, sitl dynamics",
+            "wind": "excluded: not one of the model's 16 variables; the expressions are exact in still air",
+        }},
     )
 
 

@@ -7,9 +7,11 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bridge.airframe import TURBULENCE_PRESETS
 from bridge.errors import UserError
 
 if TYPE_CHECKING:
+    from bridge.airframe import WindConfig
     from bridge.vehicle import VehicleConfig
     from sitl.server import SitlOptions
 
@@ -51,6 +53,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--initial-position", default=None, metavar="N,E,D",
                    help="start position NED in m, e.g. 0,0,-50 (default: the vehicle file's); "
                         "write --initial-position=-5,0,-50 when N is negative")
+    p.add_argument("--wind", default=None, metavar="N,E,D",
+                   help="steady wind in m/s NED, e.g. 5,0,0 for a 5 m/s wind blowing toward north "
+                        "(default: the vehicle file's wind section, else none); write --wind=-5,0,0 "
+                        "when N < 0")
+    p.add_argument("--turbulence", default=None, choices=TURBULENCE_PRESETS,
+                   help="Dryden turbulence preset (MIL-F-8785C low altitude; needs a wind speed)")
+    p.add_argument("--gust", action="append", default=None, metavar="T0,DURATION,N,E,D",
+                   help="a 1-cosine gust starting at T0 s of simulated time, lasting DURATION s, peaking at "
+                        "N,E,D m/s (repeat the flag for several gusts)")
+    p.add_argument("--wind-seed", type=int, default=None, metavar="N",
+                   help="seed of the turbulence (default: the vehicle file's wind.seed, else 0)")
     p.add_argument("--initial-rotor-speed", default="0", metavar="W|hover",
                    help="start rotor speed in rad/s, or 'hover' (trimmed hover, e.g. with --ground none)")
     p.add_argument("--lockstep-timeout", type=float, default=1.0, metavar="S",
@@ -75,8 +88,10 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
     initial_position = _triple(args.initial_position, "--initial-position") if args.initial_position else None
     if args.seed is not None and args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
-    vehicle = load_vehicle(args.vehicle).with_overrides(
-        ground=args.ground, initial_position=initial_position, sensors=args.sensors, seed=args.seed
+    vehicle = load_vehicle(args.vehicle)
+    vehicle = vehicle.with_overrides(
+        ground=args.ground, initial_position=initial_position, sensors=args.sensors, seed=args.seed,
+        wind=_wind(args, vehicle.wind),
     )
     rotor_speed = _rotor_speed(args.initial_rotor_speed, vehicle)
     timeouts = (("--lockstep-timeout", args.lockstep_timeout), ("--realtime-timeout", args.realtime_timeout))
@@ -122,15 +137,40 @@ def run(args: argparse.Namespace) -> int:
     return server.run()
 
 
-def _triple(text: str, flag: str) -> tuple[float, float, float]:
+def _numbers(text: str, what: str, count: int, flag: str, example: str) -> tuple[float, ...]:
+    """`count` finite comma-separated numbers from a flag's text; a UserError saying `what` otherwise."""
     parts = text.replace(" ", "").split(",")
     try:
         values = tuple(float(p) for p in parts)
     except ValueError:
         values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise UserError(f"{flag} must be three numbers N,E,D in m, got {text!r}", hint=f"e.g. {flag} 0,0,-50")
-    return values  # type: ignore[return-value]
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise UserError(f"{flag} must be {what}, got {text!r}", hint=f"e.g. {flag} {example}")
+    return values
+
+
+def _triple(text: str, flag: str, unit: str = "m", example: str = "0,0,-50") -> tuple[float, float, float]:
+    return _numbers(text, f"three numbers N,E,D in {unit}", 3, flag, example)  # type: ignore[return-value]
+
+
+def _wind(args: argparse.Namespace, base: WindConfig) -> WindConfig | None:
+    """The vehicle file's wind with the --wind, --turbulence, --gust, --wind-seed flags (None: no flag)."""
+    from bridge.airframe import GustConfig, wind_config
+
+    if args.wind is None and args.turbulence is None and args.gust is None and args.wind_seed is None:
+        return None
+    steady = _triple(args.wind, "--wind", "m/s", "5,0,0") if args.wind is not None else base.steady
+    gusts = base.gusts
+    if args.gust is not None:
+        gusts = tuple(GustConfig(v[0], v[1], (v[2], v[3], v[4]))
+                      for v in (_numbers(g, "five numbers T0,DURATION,N,E,D (s, s, m/s NED)", 5, "--gust",
+                                         "2,1.5,0,4,0") for g in args.gust))
+    if args.wind_seed is not None and args.wind_seed < 0:
+        raise UserError(f"--wind-seed must be >= 0, got {args.wind_seed}")
+    return wind_config(
+        "quadsr sitl flags", steady, args.turbulence or base.turbulence, base.reference_altitude, gusts,
+        base.seed if args.wind_seed is None else args.wind_seed, key="wind",
+    )
 
 
 def _rotor_speed(text: str, vehicle: VehicleConfig) -> float:

@@ -18,57 +18,47 @@ loop that must reach thousands of steps per wall second, and numpy is slower tha
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
+from bridge.integration import Derivative, rk4_step
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
+from sitl.airframe_dynamics import airframe_wrench, inverse3
 from sitl.ground import make_ground
 from sitl.mixer import QuadXMixer
 from sitl.motors import Motors
+from sitl.wind import Wind
 
 EXCHANGE_STEP_USEC = 4000
 
 
-def _inverse3(m: tuple) -> tuple:
-    """Inverse of a 3x3 matrix (rows of floats), as 9 floats row-major."""
-    (a, b, c), (d, e, f), (g, h, i) = m
-    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    return (
-        (e * i - f * h) / det, (c * h - b * i) / det, (b * f - c * e) / det,
-        (f * g - d * i) / det, (a * i - c * g) / det, (c * d - a * f) / det,
-        (d * h - e * g) / det, (b * g - a * h) / det, (a * e - b * d) / det,
-    )
+def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
+                    wind: list[float] | None = None) -> Derivative:
+    """The state derivative f(state, cmd) -> 17 floats, constants bound once.
 
-
-Derivative = Callable[[Sequence[float], Sequence[float]], tuple[float, ...]]
-
-
-def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer) -> Derivative:
-    """The state derivative f(state, cmd) -> 17 floats (see the module docstring), constants bound once."""
+    The paper's physics (VehicleConfig.paper_physics) take the closed form of the module docstring; any other
+    vehicle (its own rotor geometry, effects, wind) its body wrench from sitl.airframe_dynamics, which reads
+    `wind` (NED m/s) at every call. The rigid body (translation, attitude, rotation, motor lag) is shared.
+    """
+    paper = vehicle.paper_physics
+    body_wrench = None if paper else airframe_wrench(vehicle, wind if wind is not None else [0.0, 0.0, 0.0])
     itm = motors.inv_time_constant
     ct, k, cm, jm = mixer.ct, mixer.k, mixer.cm, mixer.jm
     g = vehicle.gravity
     im = 1.0 / vehicle.mass
     j00, j01, j02, j10, j11, j12, j20, j21, j22 = (x for row in vehicle.inertia for x in row)
-    i00, i01, i02, i10, i11, i12, i20, i21, i22 = _inverse3(vehicle.inertia)
+    i00, i01, i02, i10, i11, i12, i20, i21, i22 = inverse3(vehicle.inertia)
     cdx, cdy, cdz = vehicle.drag.body_quadratic
     has_drag = cdx != 0.0 or cdy != 0.0 or cdz != 0.0
     d0, d1, d2 = vehicle.drag.angular_damping
 
     def derivative(s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
-        _, _, _, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
+        _, _, z, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, w1, w2, w3, w4 = s
         # motors: first-order lag toward the commanded speeds
         c1, c2, c3, c4 = cmd
         dw1 = (c1 - w1) * itm
         dw2 = (c2 - w2) * itm
         dw3 = (c3 - w3) * itm
         dw4 = (c4 - w4) * itm
-        # forces and moments of the rotors (body FRD): QuadXMixer.wrench, inlined as this is the hot path
-        s1, s2, s3, s4 = w1 * w1, w2 * w2, w3 * w3, w4 * w4
-        thrust = ct * (s1 + s2 + s3 + s4)
-        tx = k * (-s1 + s2 + s3 - s4)
-        ty = k * (s1 - s2 + s3 - s4)
-        tz = cm * (s1 + s2 - s3 - s4)
-        hz = jm * (-w1 - w2 + w3 + w4)
         # rotation body -> earth
         xx, yy, zz = qx * qx, qy * qy, qz * qz
         xy, xz, yz = qx * qy, qx * qz, qy * qz
@@ -82,17 +72,28 @@ def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer) -
         r20 = 2.0 * (xz - wyq)
         r21 = 2.0 * (yz + wxq)
         r22 = 1.0 - 2.0 * (xx + yy)
-        # body-frame force: thrust and quadratic drag on the body-frame velocity R^T v
-        fbz = -thrust
-        if has_drag:
-            ubx = r00 * vx + r10 * vy + r20 * vz
-            uby = r01 * vx + r11 * vy + r21 * vz
-            ubz = r02 * vx + r12 * vy + r22 * vz
-            fbx = -cdx * ubx * abs(ubx)
-            fby = -cdy * uby * abs(uby)
-            fbz -= cdz * ubz * abs(ubz)
+        if not paper:  # every effect's force and moment, body FRD about the CG
+            fbx, fby, fbz, tx, ty, tz, hz = body_wrench(z, vx, vy, vz, wx, wy, wz, w1, w2, w3, w4,
+                                                        r00, r01, r02, r10, r11, r12, r20, r21, r22)
         else:
-            fbx = fby = 0.0
+            # forces and moments of the rotors (body FRD): QuadXMixer.wrench, inlined as this is the hot path
+            s1, s2, s3, s4 = w1 * w1, w2 * w2, w3 * w3, w4 * w4
+            thrust = ct * (s1 + s2 + s3 + s4)
+            tx = k * (-s1 + s2 + s3 - s4)
+            ty = k * (s1 - s2 + s3 - s4)
+            tz = cm * (s1 + s2 - s3 - s4)
+            hz = jm * (-w1 - w2 + w3 + w4)
+            # body-frame force: thrust and quadratic drag on the body-frame velocity R^T v
+            fbz = -thrust
+            if has_drag:
+                ubx = r00 * vx + r10 * vy + r20 * vz
+                uby = r01 * vx + r11 * vy + r21 * vz
+                ubz = r02 * vx + r12 * vy + r22 * vz
+                fbx = -cdx * ubx * abs(ubx)
+                fby = -cdy * uby * abs(uby)
+                fbz -= cdz * ubz * abs(ubz)
+            else:
+                fbx = fby = 0.0
         # translational: a = g e3 + R F_b / m
         ax = (r00 * fbx + r01 * fby + r02 * fbz) * im
         ay = (r10 * fbx + r11 * fby + r12 * fbz) * im
@@ -133,7 +134,13 @@ class Quadrotor:
         self._g = vehicle.gravity
         self._inv_m = 1.0 / vehicle.mass
         self._cd = vehicle.drag.body_quadratic
-        self._f = make_derivative(vehicle, self.motors, self.mixer)
+        self._paper = vehicle.paper_physics
+        self._wind = [0.0, 0.0, 0.0]  # NED m/s, held over each exchange step
+        self._wind_model: Wind | None = None
+        self._specific_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._specific_force_at: tuple[int, int] = (-1, 0)  # (time_usec, id of the state list) it is for
+        self._slope: tuple[float, ...] | None = None  # the derivative it came from
+        self._f = make_derivative(vehicle, self.motors, self.mixer, self._wind)
         self._cmd = (0.0, 0.0, 0.0, 0.0)
         self._s: list[float] = [0.0] * 17
         self._time_usec = 0
@@ -181,6 +188,10 @@ class Quadrotor:
         self._cmd = speeds
         self._time_usec = 0
         self._on_ground = False
+        self._specific_force_at = (-1, 0)
+        if self.vehicle.wind.active:  # the wind restarts with time (same seed: same wind)
+            self._wind_model = Wind(self.vehicle.wind, EXCHANGE_STEP)
+            self._wind[:] = self._wind_model.sample(0.0)
         if self.vehicle.ground == "plane" and self._s[2] >= 0.0:
             self._s[2] = 0.0
             self._on_ground = self.ground.apply(self._s)
@@ -193,18 +204,11 @@ class Quadrotor:
         cmd = self.motors.commanded_speeds(throttles)
         self._cmd = cmd
         h = self.h
-        hh = 0.5 * h
-        h6 = h / 6.0
         f = self._f
         apply_ground = self.ground.apply
         s = self._s
         for _ in range(self.substeps):
-            # zip without strict=: all are 17 long by construction, and strict= doubles the cost here
-            k1 = f(s, cmd)
-            k2 = f([a + hh * b for a, b in zip(s, k1)], cmd)  # noqa: B905
-            k3 = f([a + hh * b for a, b in zip(s, k2)], cmd)  # noqa: B905
-            k4 = f([a + h * b for a, b in zip(s, k3)], cmd)  # noqa: B905
-            s = [a + h6 * (b + 2.0 * (c + d) + e) for a, b, c, d, e in zip(s, k1, k2, k3, k4)]  # noqa: B905
+            s = rk4_step(f, s, cmd, h, self._first_slope(s, cmd))
             qw, qx, qy, qz = s[6], s[7], s[8], s[9]
             n = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             s[6] = qw * n
@@ -214,6 +218,21 @@ class Quadrotor:
             self._on_ground = apply_ground(s)
         self._s = s
         self._time_usec += EXCHANGE_STEP_USEC
+        if self._wind_model is not None:  # the wind over the next step, reported with this step's telemetry
+            self._wind[:] = self._wind_model.sample(self._time_usec * 1e-6)
+
+    def _first_slope(self, s: list[float], cmd: Sequence[float]) -> list[float] | None:
+        """f(s, cmd) from the derivative the specific force was computed with at s (None if there is none).
+
+        Only the motor-lag rates depend on the command, so the cached derivative's first 13 entries hold; the
+        SITL asks for the specific force every step, which saves one of five derivative calls.
+        """
+        if self._paper or self._slope is None or self._specific_force_at != (self._time_usec, id(s)):
+            return None
+        d = self._slope
+        itm = self.motors.inv_time_constant
+        return [*d[:13], (cmd[0] - s[13]) * itm, (cmd[1] - s[14]) * itm, (cmd[2] - s[15]) * itm,
+                (cmd[3] - s[16]) * itm]
 
     def _derivative(self, s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
         """d(state)/dt for the 17-float state under commanded rotor speeds cmd (rad/s)."""
@@ -268,6 +287,16 @@ class Quadrotor:
         return self._cmd
 
     @property
+    def wind(self) -> tuple[float, float, float]:
+        """The wind over the current exchange step, NED m/s (0 without wind)."""
+        return self._wind[0], self._wind[1], self._wind[2]
+
+    @property
+    def wind_model(self) -> Wind | None:
+        """The wind field being flown (None without wind)."""
+        return self._wind_model
+
+    @property
     def on_ground(self) -> bool:
         """True while the vehicle rests on the ground plane."""
         return self._on_ground
@@ -303,6 +332,20 @@ class Quadrotor:
             g = self._g
             return (-g * 2.0 * (qx * qz - qw * qy), -g * 2.0 * (qy * qz + qw * qx),
                     -g * (1.0 - 2.0 * (qx * qx + qy * qy)))
+        if not self._paper:  # R^T (a - g e3) from the derivative: every effect's force, already summed
+            if self._specific_force_at == (self._time_usec, id(s)):
+                return self._specific_force
+            d = self._slope = self._derivative(s, self._cmd)
+            ax, ay, az = d[3], d[4], d[5] - self._g
+            self._specific_force = (
+                (1.0 - 2.0 * (qy * qy + qz * qz)) * ax + 2.0 * (qx * qy + qw * qz) * ay
+                + 2.0 * (qx * qz - qw * qy) * az,
+                2.0 * (qx * qy - qw * qz) * ax + (1.0 - 2.0 * (qx * qx + qz * qz)) * ay
+                + 2.0 * (qy * qz + qw * qx) * az,
+                2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
+                + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)
+            self._specific_force_at = (self._time_usec, id(s))
+            return self._specific_force
         mixer = self.mixer
         w1, w2, w3, w4 = s[13], s[14], s[15], s[16]
         fbz = -mixer.ct * (w1 * w1 + w2 * w2 + w3 * w3 + w4 * w4)

@@ -2,7 +2,8 @@
 
 Per step, in this order: HIL_STATE_QUATERNION (true state), LOCAL_POSITION_NED (precise true position and
 velocity), RAW_RPM x4 (true rotor speeds after the motor lag, rpm, index 0..3 = motors 1..4 in PX4 order;
-pymavlink's common dialect has no ESC_STATUS), HIL_GPS on GPS steps (10 Hz), HIL_SENSOR last. All carry the
+pymavlink's common dialect has no ESC_STATUS), HIL_GPS on GPS steps (10 Hz), WIND_COV when the vehicle flies
+in wind (the true wind over the coming step, NED m/s), HIL_SENSOR last. All carry the
 step's time_usec (LOCAL_POSITION_NED: time_boot_ms = time_usec // 1000).
 
 The frames are packed here straight from floats with precompiled structs: building pymavlink message objects
@@ -36,6 +37,7 @@ _LPN = mavlink.MAVLink_local_position_ned_message
 _RPM = mavlink.MAVLink_raw_rpm_message
 _GPS = mavlink.MAVLink_hil_gps_message
 _SENSOR = mavlink.MAVLink_hil_sensor_message
+_WIND = mavlink.MAVLink_wind_cov_message
 for _cls, _order in (
     (_HSQ, "time_usec attitude_quaternion rollspeed pitchspeed yawspeed lat lon alt vx vy vz ind_airspeed "
            "true_airspeed xacc yacc zacc"),
@@ -44,6 +46,7 @@ for _cls, _order in (
     (_GPS, "time_usec lat lon alt eph epv vel vn ve vd cog fix_type satellites_visible id yaw"),
     (_SENSOR, "time_usec xacc yacc zacc xgyro ygyro zgyro xmag ymag zmag abs_pressure diff_pressure "
               "pressure_alt temperature fields_updated id"),
+    (_WIND, "time_usec wind_x wind_y wind_z var_horiz var_vert wind_alt horiz_accuracy vert_accuracy"),
 ):
     # The payload tuples below are written in these wire orders; fail loudly if pymavlink ever differs.
     if list(_cls.ordered_fieldnames) != _order.split():
@@ -140,8 +143,8 @@ class HilEncoder:
         self.frame = LocalFrame.at(home)
         self.link = link
         self._frames = Framer(link.system_id, link.component_id, link, link.signing).frames
-        kinds = map(kind, (_HSQ, _LPN, _RPM, _GPS, _SENSOR))
-        self._hsq, self._lpn, self._rpm, self._gps, self._sensor = kinds
+        kinds = map(kind, (_HSQ, _LPN, _RPM, _GPS, _SENSOR, _WIND))
+        self._hsq, self._lpn, self._rpm, self._gps, self._sensor, self._wind = kinds
 
     def step_frames(self, quad: Quadrotor, s: SensorFrame) -> list[bytes]:
         """The frames of the current step, HIL_SENSOR last; all stamped with the step's time_usec."""
@@ -184,6 +187,12 @@ class HilEncoder:
                 int16_of(vd * 100.0), cog,
                 g.fix_type, min(max(g.satellites, 0), 255), 0, 0,
             )))
+        wind = quad.wind_model
+        if wind is not None:
+            wn, we, wd = quad.wind
+            msg_id, extra, pack = self._wind
+            var_h, var_v = wind.variance
+            parts.append((msg_id, extra, pack(t, wn, we, wd, var_h, var_v, alt, 0.0, 0.0)))
         ax, ay, az = s.accel
         gx, gy, gz = s.gyro
         mx, my, mz = s.mag
@@ -220,9 +229,16 @@ def reference_messages(quad: Quadrotor, s: SensorFrame, home: HomeConfig) -> lis
         g = s.gps
         out.append(messages.encode_hil_gps(
             messages.GpsSample(t, g.lat, g.lon, g.alt, g.vel, g.fix_type, g.satellites, g.eph, g.epv)))
+    if quad.wind_model is not None:
+        out.append(wind_cov(t, quad.wind, quad.wind_model.variance, alt))
     out.append(messages.encode_hil_sensor(messages.ImuSample(
         t, s.accel, s.gyro, s.mag, s.abs_pressure, s.pressure_alt, s.temperature, s.fields_updated)))
     return out
+
+
+def wind_cov(time_usec: int, wind: tuple[float, float, float], variance: tuple[float, float], alt: float):
+    """A WIND_COV message: true wind (NED m/s), turbulence variance (horizontal, vertical) (m/s)^2, alt m."""
+    return mavlink.MAVLink_wind_cov_message(time_usec, *wind, variance[0], variance[1], alt, 0.0, 0.0)
 
 
 def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int, int]:

@@ -1,10 +1,23 @@
-"""Motors: throttle in [0, 1] -> commanded rotor speed (the vehicle's curve), then a first-order lag."""
+"""Motors: throttle in [0, 1] -> commanded rotor speed (the vehicle's thrust model), then a first-order lag.
+
+The thrust models (bridge.vehicle.MotorCurve): the paper's linear throttle-to-speed curve, PX4's THR_MDL_FAC
+(thrust a mix of linear and quadratic in throttle) and a polynomial. Optional motor speed noise: white
+Gaussian noise (std motor.speed_noise rad/s, seeded by the simulation seed) on each commanded speed, drawn
+once per exchange step; the true rotor speeds the SITL reports are the lagged result, so a model in them stays
+exact.
+"""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
+import numpy as np
+
 from bridge.vehicle import VehicleConfig
+
+NOISE_BLOCK = 1024  # steps of motor noise drawn at once
+NOISE_STREAM = 1  # second element of the noise generator's seed, apart from the sensors' stream
 
 
 class Motors:
@@ -14,24 +27,47 @@ class Motors:
         self.curve = vehicle.motor_curve
         self.time_constant = vehicle.motor.time_constant
         self.inv_time_constant = 1.0 / vehicle.motor.time_constant
+        self._kind = self.curve.kind
+        self._px4 = (1.0 - self.curve.thr_mdl_fac, self.curve.thr_mdl_fac, self.curve.full_speed)
         self._slope = self.curve.curve_slope
         self._offset = self.curve.curve_offset
         self._max = self.curve.max_speed
+        self._zero_speed = self.curve.speed_for_throttle(0.0)
+        self.speed_noise = vehicle.motor.speed_noise
+        seed = [vehicle.simulation.seed, NOISE_STREAM]
+        self._rng = np.random.default_rng(seed) if self.speed_noise else None
+        self._noise: list[float] = []
 
     def commanded_speeds(self, throttles: Sequence[float]) -> tuple[float, float, float, float]:
         """Steady rotor speeds (rad/s) for four throttles; NaN counts as 0, others are clipped to [0, 1]."""
         if len(throttles) != 4:
             raise ValueError(f"expected 4 throttles, got {len(throttles)}")
-        # MotorCurve.speed_for_throttle, inlined: this runs every step.
-        slope, offset, w_max = self._slope, self._offset, self._max
-        out = []
-        for sigma in throttles:
-            s = float(sigma)
-            if not s > 0.0:  # also catches NaN
-                out.append(0.0 if offset <= 0.0 else offset)
-                continue
-            w = slope * (s if s < 1.0 else 1.0) + offset
-            out.append(0.0 if w < 0.0 else (w if w < w_max else w_max))
+        if self._kind == "px4":  # MotorCurve.speed_for_throttle for PX4's model, inlined
+            lin, quad, full = self._px4
+            out = []
+            for sigma in throttles:
+                s = float(sigma)
+                s = 0.0 if not s > 0.0 else (s if s < 1.0 else 1.0)
+                out.append(full * math.sqrt(lin * s + quad * s * s))
+        elif self._kind == "polynomial":
+            out = [self._zero_speed if not float(s) > 0.0 else self.curve.speed_for_throttle(float(s))
+                   for s in throttles]
+        else:
+            # MotorCurve.speed_for_throttle, inlined: this runs every step.
+            slope, offset, w_max = self._slope, self._offset, self._max
+            out = []
+            for sigma in throttles:
+                s = float(sigma)
+                if not s > 0.0:  # also catches NaN
+                    out.append(0.0 if offset <= 0.0 else offset)
+                    continue
+                w = slope * (s if s < 1.0 else 1.0) + offset
+                out.append(0.0 if w < 0.0 else (w if w < w_max else w_max))
+        if self._rng is not None:
+            if not self._noise:  # drawn in blocks of NOISE_BLOCK steps, 4 numbers a step, in a fixed order
+                self._noise = self._rng.normal(0.0, self.speed_noise, 4 * NOISE_BLOCK).tolist()[::-1]
+            pop = self._noise.pop
+            out = [w + n if w + n > 0.0 else 0.0 for w, n in ((w, pop()) for w in out)]
         return out[0], out[1], out[2], out[3]
 
     def speed_rate(self, commanded: float, speed: float) -> float:
