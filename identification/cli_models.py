@@ -72,6 +72,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file"
     )
+    _add_row_options(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run_identify)
 
@@ -93,6 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--targets-from", default="truth", choices=("truth", "sensors"), help="as for identify")
     p.add_argument("--motor-curve", default=None, metavar="VEHICLE|SLOPE,OFFSET", help="as for identify")
+    _add_row_options(p)
     p.set_defaults(func=run_validate)
 
     p = sub.add_parser(
@@ -110,6 +112,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_model_from_vehicle)
 
 
+def _add_row_options(p: argparse.ArgumentParser) -> None:
+    """--window and --all-rows: which rows of the logs to use."""
+    p.add_argument(
+        "--window",
+        action="append",
+        default=None,
+        metavar="START:END",
+        help="keep only rows between START and END seconds of log time (repeatable; replaces the "
+        "automatic airborne detection)",
+    )
+    p.add_argument(
+        "--all-rows",
+        action="store_true",
+        help="no airborne detection: keep every complete row (ground rows too)",
+    )
+
+
 def _output_path(text: str, flag: str) -> Path:
     path = Path(text)
     if path.is_dir():
@@ -120,20 +139,22 @@ def _output_path(text: str, flag: str) -> Path:
     return path
 
 
-def _load(logs: list[str], targets_from: str, motor_curve: str | None):
-    from identification.dataset import Dataset, load_dataset
+def _load(
+    logs: list[str], targets_from: str, motor_curve: str | None, args: argparse.Namespace | None = None
+):
+    """Read, segment and join the logs, printing what was kept and every reason rows were dropped."""
+    from identification.dataset import load_datasets
+    from identification.segmentation import parse_window
 
-    datasets = []
-    for log in logs:
-        d = load_dataset(log, targets=targets_from, motor_curve=motor_curve)
-        for w in d.warnings:
-            print(f"warning: {log}: {w}", file=sys.stderr)
-        if d.dropped_rows:
-            print(f"{log}: dropped {d.dropped_rows} rows", file=sys.stderr)
-        if len(d) == 0:
-            raise UserError(f"flight log {log} gave no usable rows", hint="check the log holds a flight")
-        datasets.append(d)
-    return datasets[0] if len(datasets) == 1 else Dataset.concat(datasets)
+    windows = [parse_window(w) for w in (getattr(args, "window", None) or [])]
+    airborne = not getattr(args, "all_rows", False)
+    dataset = load_datasets(
+        logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne
+    )
+    for line in dataset.segments:
+        print(line, file=sys.stderr)
+    print(dataset.summary(), file=sys.stderr)
+    return dataset
 
 
 def run_identify(args: argparse.Namespace) -> int:
@@ -162,7 +183,14 @@ def run_identify(args: argparse.Namespace) -> int:
         from identification.true_model import vehicle_provenance
 
         vehicle = vehicle_provenance(load_vehicle(args.vehicle))
-    dataset = _load(args.logs, args.targets_from, args.motor_curve)
+    dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
+    motor = None
+    if dataset.u_from_throttle:
+        from identification.motor_model import apply_thrust_curve, fit_thrust_curve
+
+        motor = fit_thrust_curve(dataset.split(args.holdout)[0])
+        dataset = apply_thrust_curve(dataset, motor)
+        print(f"motor model (fitted on the training rows): {motor.describe()}", file=sys.stderr)
     print(
         f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget:g} s "
         f"per target, seed {args.seed}",
@@ -180,6 +208,8 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle=vehicle,
         progress=not args.no_progress,
     )
+    if motor is not None:
+        model.engine["motor_model"] = motor.as_dict()
     save_model(model, out)
     metrics = {n: t.metrics.get("validation", t.metrics.get("train")) for n, t in model.targets.items()}
     print(f"held-out metrics ({args.holdout:.0%} of each flight):")
@@ -200,7 +230,12 @@ def run_validate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", hint="give a folder for the outputs")
-    dataset = _load([args.log], args.targets_from, args.motor_curve)
+    dataset = _load([args.log], args.targets_from, args.motor_curve, args)
+    if dataset.u_from_throttle:
+        from identification.motor_model import apply_thrust_curve, curve_from_dict
+
+        curve = curve_from_dict(model.engine.get("motor_model"), args.model)
+        dataset = apply_thrust_curve(dataset, curve)
     report = validate(model, dataset, out, reference)
     print(f"Table I: {args.model} on {args.log} ({len(dataset)} rows)")
     print(table_markdown(report.metrics), end="")

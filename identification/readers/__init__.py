@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
-from identification.dataset import Dataset, file_sha256
+from identification.table import Dataset, file_sha256
 from identification.targets import wrap_angle
 
 GAP_FACTOR = 4.0  # a stream's max gap: this many of its median sample intervals
@@ -234,8 +234,11 @@ def make_dataset(
     rows: RowFilter,
     warnings: list[str],
     extra_dropped: dict[str, int] | None = None,
+    aux: dict[str, np.ndarray] | None = None,
 ) -> Dataset:
-    """The Dataset of the rows that survive the filter (plus NaN checks), with drops counted by reason."""
+    """The Dataset of the rows that survive the filter (plus NaN checks), with drops counted by reason.
+
+    aux: side columns per timeline row (identification.table.AUX_NAMES), kept for the surviving rows."""
     rows.drop_nonfinite("NaN in states or rotor speeds", xi, u)
     rows.drop_nonfinite("no target (differentiation edge or gap)", targets)
     keep, counts = rows.keep_mask()
@@ -259,4 +262,5 @@ def make_dataset(
         drop_reasons=counts,
         warnings=list(warnings),
         sha256=file_sha256(path),
+        aux={k: np.asarray(v, dtype=float)[keep] for k, v in (aux or {}).items()},
     )

@@ -35,8 +35,8 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
-from identification.dataset import Dataset
 from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
