@@ -3,7 +3,8 @@ and the row filter that drops and counts bad rows before a Dataset is made.
 
 Resampling: each stream (one log topic's columns) is linearly interpolated at the timeline's times
 ('linear'), held at its last value ('hold', for flags), or unwrapped before and wrapped after
-interpolation ('angle'). A row has a gap in a stream when the two samples around it are more than the
+interpolation ('angle'). A 'hold' stream with no max gap (a state such as armed or landed) holds its last
+value after its last sample too. A row has a gap in a stream when the two samples around it are more than the
 stream's max_gap apart, or the row lies outside the stream's time span; such rows are dropped and counted.
 """
 
@@ -63,7 +64,7 @@ class Stream:
             out[near] = self.values[0]
             return out, near
         i = np.searchsorted(self.t, tl, side="right")  # t[i-1] <= tl < t[i]
-        inside = (tl >= self.t[0]) & (tl <= self.t[-1])
+        inside = (tl >= self.t[0]) & ((tl <= self.t[-1]) | (self.kind == "hold" and self.max_gap == np.inf))
         lo = np.clip(i - 1, 0, len(self.t) - 1)
         hi = np.clip(i, 0, len(self.t) - 1)
         exact = inside & (self.t[lo] == tl)
