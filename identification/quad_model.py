@@ -83,7 +83,7 @@ class QuadrotorModel:
 
     # -- learning ------------------------------------------------------------------------------------
     def fit(self, data: Dataset) -> QuadrotorModel:
-        """Learn each target's expression from a Dataset (held-out part: the last `holdout` of each flight)."""
+        """Learn each target's expression from a Dataset (held out: the last `holdout` of each flight)."""
         from identification.identify import identify
 
         if data.u_from_throttle:
