@@ -73,6 +73,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file"
     )
     _add_row_options(p)
+    p.add_argument(
+        "--report",
+        default=None,
+        metavar="DIR",
+        help="model report folder (report.md, fit.png); default: <MODEL>_report beside the model file",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run_identify)
 
@@ -177,12 +183,13 @@ def run_identify(args: argparse.Namespace) -> int:
         from identification.pysr_engine import require_pysr
 
         require_pysr(settings.pysr.probe_timeout_s)  # fail before reading the logs
-    vehicle = None
+    vehicle = vehicle_config = None
     if args.vehicle:
         from bridge.vehicle import load_vehicle
         from identification.true_model import vehicle_provenance
 
-        vehicle = vehicle_provenance(load_vehicle(args.vehicle))
+        vehicle_config = load_vehicle(args.vehicle)
+        vehicle = vehicle_provenance(vehicle_config)
     dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
     motor = None
     if dataset.u_from_throttle:
@@ -214,10 +221,27 @@ def run_identify(args: argparse.Namespace) -> int:
     metrics = {n: t.metrics.get("validation", t.metrics.get("train")) for n, t in model.targets.items()}
     print(f"held-out metrics ({args.holdout:.0%} of each flight):")
     print(table_markdown(metrics), end="")
-    for name, t in model.targets.items():
-        print(f"{name} = {t.expression}")
+    _print_and_report(model, motor, dataset, args, out, vehicle_config)
     print(f"wrote {out}")
     return 0
+
+
+def _print_and_report(model, motor, dataset, args: argparse.Namespace, out: Path, vehicle) -> None:
+    """Print the grouped equations and the plausibility checks; write the model report."""
+    from identification.model_report import equations_block, model_flags, write_model_report
+    from identification.plausibility import checks_text, plausibility_checks
+    from identification.quad_model import QuadrotorModel
+
+    fitted = QuadrotorModel.from_model(model, motor)
+    print(equations_block(fitted))
+    checks = plausibility_checks(fitted, dataset.xi, dataset.u, vehicle=vehicle)
+    print(checks_text(checks))
+    train, hold = dataset.split(args.holdout)
+    for flag in model_flags(fitted, hold):
+        print(f"flag: {flag}")
+    folder = Path(args.report) if args.report else out.with_name(out.stem + "_report")
+    md, png = write_model_report(fitted, train, hold, folder, checks, title=f"model report: {out.name}")
+    print(f"wrote {md}, {png}")
 
 
 def run_validate(args: argparse.Namespace) -> int:

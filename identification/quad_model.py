@@ -112,6 +112,11 @@ class QuadrotorModel:
         return self.model_
 
     @property
+    def target_names(self) -> tuple[str, ...]:
+        """The targets the fitted model has expressions for, in the canonical order."""
+        return self._require().target_names
+
+    @property
     def equations(self) -> dict[str, sympy.Expr]:
         """Target name -> sympy expression of the states and rotor speeds."""
         return self._require().expressions
@@ -186,6 +191,13 @@ class QuadrotorModel:
             out[k + 1] = x
         return out
 
+    @classmethod
+    def from_model(cls, model: Model, motor: ThrustCurve | None = None) -> QuadrotorModel:
+        """A fitted QuadrotorModel around an identified Model (and the motor curve of its inputs)."""
+        obj = cls()
+        obj.model_, obj.motor_, obj.targets = model, motor, model.target_names
+        return obj
+
     # -- files ---------------------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
         """Write the model file (quadsr-model/1, with the motor model when one was fitted)."""
@@ -194,9 +206,6 @@ class QuadrotorModel:
     @classmethod
     def load(cls, path: str | Path) -> QuadrotorModel:
         """A fitted QuadrotorModel from a model file."""
-        obj = cls()
-        obj.model_ = load_model(path)
-        obj.targets = obj.model_.target_names
-        motor = obj.model_.engine.get("motor_model")
-        obj.motor_ = curve_from_dict(motor, str(path)) if motor else None
-        return obj
+        model = load_model(path)
+        motor = model.engine.get("motor_model")
+        return cls.from_model(model, curve_from_dict(motor, str(path)) if motor else None)
