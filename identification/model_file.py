@@ -545,10 +545,8 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     """Read a model.yaml; a missing, unreadable or malformed file is a UserError naming file and key."""
     p = Path(path)
     if not p.exists():
-        raise UserError(
-            f"model file {p} does not exist",
-            hint="write one with `quadsr identify` or `quadsr model-from-vehicle`",
-        )
+        raise UserError(f"model file {p} does not exist",
+                        hint="write one with `quadsr identify` or `quadsr model-from-vehicle`")
     r = _Reader(p)
     data = load_yaml_file(p, f"{p}: (document)")  # as _Reader names a file and key
     if data is None:

@@ -13,9 +13,9 @@ from identification.model_file import Model, parse_expression
 
 PAPER_EQUATIONS: dict[str, str] = {
     "ax": "-0.00768*u1*sin(phi)*sin(psi) - 1.63e-5*u2*u4*sin(phi)*sin(psi)"
-    " - 0.00665*theta*u1*cos(phi)*cos(psi) - 1.63e-5*theta*u2*u4*cos(phi)*cos(psi)",
+          " - 0.00665*theta*u1*cos(phi)*cos(psi) - 1.63e-5*theta*u2*u4*cos(phi)*cos(psi)",
     "ay": "7.87e-6*u1**2*sin(phi + psi) + 7.78e-6*u2**2*sin(phi + psi) + 7.78e-6*u3**2*sin(phi + psi)"
-    " + 7.78e-6*u4**2*sin(phi + psi) - 0.0441",
+          " + 7.78e-6*u4**2*sin(phi + psi) - 0.0441",
     "az": "9.44 - 6.90e-6*cos(phi)*(u1**2 + u2**2 + u3**2 + u4**2) - 0.000289*vz**2",
     "dwx": "0.697*wy*wz + 8.33e-5*(u2**2 + u3**2 - u1**2 - u4**2)",
     "dwy": "-0.708*wx*wz + 8.03e-5*(u1**2 + u3**2 - u2**2 - u4**2)",
@@ -32,8 +32,5 @@ PAPER_KINEMATICS: dict[str, str] = {
 @functools.lru_cache(maxsize=1)
 def paper_model() -> Model:
     """The paper's zeta_4..6 and zeta_10..12 as a Model in our variable names."""
-    return Model(
-        {name: parse_expression(text) for name, text in PAPER_EQUATIONS.items()},
-        kind="learned",
-        engine={"name": "paper (Eureqa)"},
-    )
+    return Model({name: parse_expression(text) for name, text in PAPER_EQUATIONS.items()}, kind="learned",
+                 engine={"name": "paper (Eureqa)"})
