@@ -237,7 +237,9 @@ def number_text(value: float, digits: int) -> str:
     return f"{v:.{digits - 1}e}"
 
 
-def _factor_text(factor: sympy.Expr) -> str:
+def _factor_text(factor: sympy.Expr, digits: int) -> str:
+    floats = factor.atoms(sympy.Float)
+    factor = factor.xreplace({f: sympy.Float(float(f"{float(f):.{digits}g}"), digits) for f in floats})
     text = re.sub(r"v_b([xyz])_abs", r"|vb\1|", sympy.sstr(factor)).replace("v_b", "vb")
     return text.replace("**", "^")
 
@@ -252,7 +254,7 @@ def equation_text(target: str, expr: sympy.Expr, digits: int = 3) -> list[tuple[
         return [("other", sympy.sstr(rounded).replace("**", "^"))]
     by_group: dict[str, list[str]] = {}
     for c, factor in terms:
-        body = number_text(c, digits) + ("" if factor == 1 else " " + _factor_text(factor))
+        body = number_text(c, digits) + ("" if factor == 1 else " " + _factor_text(factor, digits))
         by_group.setdefault(term_group(target, factor), []).append(("- " if c < 0 else "+ ") + body)
     return [(g, " ".join(by_group[g])) for g in GROUPS if g in by_group]
 
