@@ -176,6 +176,21 @@ def specific_force(xi: np.ndarray, accel_ned: np.ndarray, g: float) -> np.ndarra
     return np.einsum("nji,nj->ni", r, a)
 
 
+def ekf_fields(x: np.ndarray) -> dict[str, float]:
+    """The EKF record's attitude (deg, yaw 0..360), velocity NED (m/s) and position NED (m) of a state."""
+    return {
+        "Roll": math.degrees(x[6]),
+        "Pitch": math.degrees(x[7]),
+        "Yaw": math.degrees(x[8]) % 360.0,
+        "VN": x[3],
+        "VE": x[4],
+        "VD": x[5],
+        "PN": x[0],
+        "PE": x[1],
+        "PD": x[2],
+    }
+
+
 def write_flight(
     path: str | Path,
     flight: SyntheticFlight,
@@ -246,20 +261,7 @@ def write_flight(
             w.write("BAT", TimeUS=tu, Inst=0, Volt=16.0 - 0.1 * tk, VoltR=16.0, Curr=5.0)
         if k % xkf_every == 0:
             if with_xkf1:
-                w.write(
-                    "XKF1",
-                    TimeUS=tu,
-                    C=0,
-                    Roll=math.degrees(x[6]),
-                    Pitch=math.degrees(x[7]),
-                    Yaw=math.degrees(x[8]) % 360.0,
-                    VN=x[3],
-                    VE=x[4],
-                    VD=x[5],
-                    PN=x[0],
-                    PE=x[1],
-                    PD=x[2],
-                )
+                w.write("XKF1", TimeUS=tu, C=0, **ekf_fields(x))
                 w.write(
                     "XKF1", TimeUS=tu, C=1, VN=99.0, VE=99.0, VD=99.0, PN=99.0, PE=99.0, PD=99.0
                 )  # core 1
@@ -307,18 +309,6 @@ def write_old_flight(
             }
             w.write("RCOU", TimeMS=tm, **pwm)
         if k % 10 == 0:
-            w.write(
-                "EKF1",
-                TimeMS=tm,
-                Roll=math.degrees(x[6]),
-                Pitch=math.degrees(x[7]),
-                Yaw=math.degrees(x[8]) % 360.0,
-                VN=x[3],
-                VE=x[4],
-                VD=x[5],
-                PN=x[0],
-                PE=x[1],
-                PD=x[2],
-            )
+            w.write("EKF1", TimeMS=tm, **ekf_fields(x))
     w.close()
     return Path(path)
