@@ -141,3 +141,27 @@ def test_a_missing_topic_is_named(tmp_path):
         UserError, match="no_attitude.ulg has no topic 'vehicle_attitude'; it is needed for the attitude"
     ):
         load_dataset(path)
+
+
+def test_angular_velocity_without_its_derivative_is_differentiated(tmp_path):
+    """vehicle_angular_velocity without xyz_derivative (zeros): read, wx' etc. by differentiation."""
+    from pyulog import ULog
+
+    ulog = ULog(str(LOG))
+    for d in ulog.data_list:
+        if d.name == "vehicle_angular_velocity":
+            for i in range(3):
+                d.data[f"xyz_derivative[{i}]"][:] = 0.0
+    path = tmp_path / "no_derivative.ulg"
+    ulog.write_ulog(str(path))
+    ds = load_dataset(path)
+    assert any("no xyz_derivative" in w for w in ds.warnings)
+    assert abs(len(ds) - len(load_dataset(LOG))) < 10
+    # the documented fallback: identification.targets.stream_derivative of the rates, at their own times
+    from identification.targets import stream_derivative
+
+    av = {d.name: d for d in ulog.data_list}["vehicle_angular_velocity"].data
+    t = (av["timestamp_sample"].astype(np.int64) - np.int64(ulog.start_timestamp)) * 1e-6
+    dw = stream_derivative(t, np.column_stack([av[f"xyz[{i}]"] for i in range(3)]).astype(float))
+    k = np.searchsorted(t, ds.t)
+    assert np.allclose(t[k], ds.t) and np.allclose(ds.targets[:, 3:6], dw[k], atol=1e-9)

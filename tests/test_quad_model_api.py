@@ -64,3 +64,18 @@ def test_arrays_in_and_unfitted_errors():
         QuadrotorModel().predict(flight)
     with pytest.raises(UserError, match="xi must be"):
         flight_from_arrays(t, ds.xi[:, :6], ds.u)
+
+
+def test_a_log_without_rotor_speeds_fits_through_its_thrust_curve(tmp_path):
+    from dataflash_fixture import fly_synthetic, write_flight
+
+    from identification.dataset import load_dataset
+
+    path = write_flight(tmp_path / "no_esc.bin", fly_synthetic(duration=4.0, seed=11), with_esc=False)
+    data = load_dataset(path, airborne=False)
+    model = QuadrotorModel(engine="sparse", budget_s=10.0, seed=0, targets=("az",)).fit(data)
+    assert model.motor_ is not None and model.motor_.k >= 0.6
+    assert model.scores(data)["az"] > 0.9
+    again = QuadrotorModel.load(model.save(tmp_path / "m.yaml"))
+    assert again.motor_ == model.motor_ or again.motor_.k == model.motor_.k
+    assert np.allclose(again.predict(data), model.predict(data))
