@@ -87,4 +87,11 @@ def load_datasets(
                 hint="check its airborne part (see the drop reasons above) or the --window you gave",
             )
         parts.append(d)
+    measured = [str(p) for p, d in zip(paths, parts, strict=True) if not d.u_from_throttle]
+    if measured and len(measured) < len(parts):
+        raise UserError(
+            f"some logs have rotor speeds ({', '.join(measured)}) and some only motor commands: "
+            "their u would not be the same quantity",
+            hint="pass --motor-curve (your motor's throttle -> rad/s) so every log gives rotor speeds",
+        )
     return parts[0] if len(parts) == 1 else Dataset.concat(parts)

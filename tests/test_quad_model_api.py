@@ -77,5 +77,5 @@ def test_a_log_without_rotor_speeds_fits_through_its_thrust_curve(tmp_path):
     assert model.motor_ is not None and model.motor_.k >= 0.6
     assert model.scores(data)["az"] > 0.9
     again = QuadrotorModel.load(model.save(tmp_path / "m.yaml"))
-    assert again.motor_ == model.motor_ or again.motor_.k == model.motor_.k
+    assert (again.motor_.k, again.motor_.voltage_ref) == (model.motor_.k, model.motor_.voltage_ref)
     assert np.allclose(again.predict(data), model.predict(data))
