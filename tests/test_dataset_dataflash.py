@@ -161,3 +161,14 @@ def test_without_esc_the_motor_commands_go_through_a_thrust_curve(flight, tmp_pa
     k = np.round((ds.t - T0) / 0.004).astype(int)
     ratio = (fitted.u**2).sum(axis=1) / (flight.u[k] ** 2).sum(axis=1)
     assert ratio.std() / ratio.mean() < 0.1  # u^2 proportional to the true thrust within 10%
+
+
+def test_logs_with_and_without_rotor_speeds_do_not_mix(flight, binlog, tmp_path):
+    from identification.dataset import load_datasets
+
+    no_esc = write_flight(tmp_path / "commands_only.bin", flight, with_esc=False)
+    with pytest.raises(UserError, match="some logs have rotor speeds") as info:
+        load_datasets([binlog, no_esc], airborne=False)
+    assert "--motor-curve" in str(info.value)
+    both = load_datasets([binlog, no_esc], airborne=False, motor_curve="fang-chen-buaa")
+    assert len(both.flights) == 2 and not both.u_from_throttle
