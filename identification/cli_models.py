@@ -192,12 +192,14 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle = vehicle_provenance(vehicle_config)
     dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
     motor = None
-    if dataset.u_from_throttle:
-        from identification.motor_model import apply_thrust_curve, fit_thrust_curve
+    if args.motor_curve is None:
+        from identification.motor_model import apply_thrust_curve, choose_motor_model
 
-        motor = fit_thrust_curve(dataset.split(args.holdout)[0])
-        dataset = apply_thrust_curve(dataset, motor)
-        print(f"motor model (fitted on the training rows): {motor.describe()}", file=sys.stderr)
+        motor, why = choose_motor_model(dataset.split(args.holdout)[0])
+        if motor is not None:
+            dataset = apply_thrust_curve(dataset, motor)
+        if why:
+            print(why, file=sys.stderr)
     print(
         f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget:g} s "
         f"per target, seed {args.seed}",
@@ -255,7 +257,7 @@ def run_validate(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", hint="give a folder for the outputs")
     dataset = _load([args.log], args.targets_from, args.motor_curve, args)
-    if dataset.u_from_throttle:
+    if dataset.u_from_throttle or ("motor_model" in model.engine and "throttle" in dataset.aux):
         from identification.motor_model import apply_thrust_curve, curve_from_dict
 
         curve = curve_from_dict(model.engine.get("motor_model"), args.model)

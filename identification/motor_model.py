@@ -11,6 +11,9 @@ fit_thrust_curve picks k (0, 0.1, ..., 1) and whether to use the voltage, jointl
 model a_NED - (0, 0, g) = -c * (sum u_i^2) * R(phi, theta, psi)[:, 2] (least squares for c): the curve
 whose model explains the three accelerations best (R^2 over the stacked axes) on the rows given.
 A user who knows the curve passes --motor-curve instead (identification.readers.rotor_model).
+choose_motor_model also uses it on logs that do have rotor speeds, when the commands explain the thrust
+direction clearly better (rpm logged at a few Hz and interpolated, a simulator's rpm that does not make
+thrust quadratic in it).
 """
 
 from __future__ import annotations
@@ -95,10 +98,37 @@ def fit_thrust_curve(ds: Dataset) -> ThrustCurve:
     return best or ThrustCurve()
 
 
+SWITCH_MARGIN = 0.01  # R^2 by which the commands' thrust curve must beat measured rotor speeds
+
+
+def choose_motor_model(train: Dataset) -> tuple[ThrustCurve | None, str]:
+    """The thrust curve to remake u with (None: keep the measured rotor speeds), and a line saying why.
+
+    Logs without rotor speeds: the fitted curve. Logs with both rotor speeds and motor commands: the curve
+    only when its thrust-direction model beats the measured speeds' by SWITCH_MARGIN in R^2 (e.g. rpm
+    reported at 4 Hz, or a simulator whose rpm does not make thrust quadratic in it)."""
+    if "throttle" not in train.aux or not np.isfinite(train.aux["throttle"]).all():
+        return None, ""
+    curve = fit_thrust_curve(train)
+    if train.u_from_throttle:
+        return curve, f"motor model (fitted on the training rows): {curve.describe()}"
+    measured, _ = thrust_direction_r2(train, train.u)
+    if curve.r2 is not None and curve.r2 > measured + SWITCH_MARGIN:
+        return curve, (
+            f"motor model: the motor commands through a {curve.describe()} explain the thrust direction "
+            f"better than the logged rotor speeds (R^2 {measured:.3f}): using the commands"
+        )
+    return None, (
+        f"rotor speeds as logged: their thrust-direction R^2 {measured:.3f} is not beaten by the motor "
+        f"commands' best thrust curve ({curve.r2:.3f})"
+    )
+
+
 def apply_thrust_curve(ds: Dataset, curve: ThrustCurve) -> Dataset:
     """ds with u remade from its throttle (and voltage) through the curve; a note says which."""
     out = ds.select(slice(None))
     out.u = curve.speeds(ds.aux["throttle"], ds.aux.get("voltage"))
+    out.u_from_throttle = True
     out.warnings.append(f"motor model: {curve.describe()}")
     return out
 

@@ -27,7 +27,7 @@ from identification.dataset import load_datasets
 from identification.kinematics import euler_rates
 from identification.metrics import r2
 from identification.model_file import Model, load_model, save_model
-from identification.motor_model import ThrustCurve, apply_thrust_curve, curve_from_dict, fit_thrust_curve
+from identification.motor_model import ThrustCurve, apply_thrust_curve, choose_motor_model, curve_from_dict
 from identification.table import INPUT_NAMES, STATE_NAMES, TARGET_NAMES, Dataset
 from identification.targets import stream_derivative
 
@@ -79,6 +79,7 @@ class QuadrotorModel:
         self.targets = tuple(targets)
         self.model_: Model | None = None
         self.motor_: ThrustCurve | None = None
+        self.motor_note_ = ""
         self._fns: dict[str, Any] = {}
 
     # -- learning ------------------------------------------------------------------------------------
@@ -86,8 +87,8 @@ class QuadrotorModel:
         """Learn each target's expression from a Dataset (held out: the last `holdout` of each flight)."""
         from identification.identify import identify
 
-        if data.u_from_throttle:
-            self.motor_ = fit_thrust_curve(data.split(self.holdout)[0])
+        self.motor_, self.motor_note_ = choose_motor_model(data.split(self.holdout)[0])
+        if self.motor_ is not None:
             data = apply_thrust_curve(data, self.motor_)
         self.model_ = identify(
             data,
@@ -123,7 +124,7 @@ class QuadrotorModel:
 
     def _inputs(self, data: Dataset) -> np.ndarray:
         """The dataset's u, through the model's motor curve when the log has only motor commands."""
-        if data.u_from_throttle:
+        if data.u_from_throttle or (self.motor_ is not None and "throttle" in data.aux):
             curve = self.motor_ or curve_from_dict(self._require().engine.get("motor_model"), "model")
             return apply_thrust_curve(data, curve).u
         return data.u

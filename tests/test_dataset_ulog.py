@@ -165,3 +165,19 @@ def test_angular_velocity_without_its_derivative_is_differentiated(tmp_path):
     dw = stream_derivative(t, np.column_stack([av[f"xyz[{i}]"] for i in range(3)]).astype(float))
     k = np.searchsorted(t, ds.t)
     assert np.allclose(t[k], ds.t) and np.allclose(ds.targets[:, 3:6], dw[k], atol=1e-9)
+
+
+def test_motor_commands_replace_4_hz_rpm_when_they_explain_the_thrust_better(truth):
+    """jMAVSim's rpm (4 Hz, thrust not quadratic in it) against actuator_outputs through a fitted curve."""
+    from identification.motor_model import apply_thrust_curve, choose_motor_model, thrust_direction_r2
+
+    train, _ = truth.split(0.2)
+    curve, why = choose_motor_model(train)
+    assert curve is not None and "using the commands" in why
+    measured, _ = thrust_direction_r2(train, train.u)
+    assert curve.r2 > 0.95 and measured < 0.8  # measured on this log: 0.982 against 0.488
+    assert curve.k == 0.0  # jMAVSim's thrust is linear in the command
+    remade = apply_thrust_curve(truth, curve)
+    assert remade.u_from_throttle and np.allclose(
+        remade.u[:, 0], 1000.0 * np.sqrt(truth.aux["throttle"][:, 0])
+    )
