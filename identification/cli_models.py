@@ -72,6 +72,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file"
     )
+    _add_row_options(p)
+    p.add_argument(
+        "--report",
+        default=None,
+        metavar="DIR",
+        help="model report folder (report.md, fit.png); default: <MODEL>_report beside the model file",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     fleet = p.add_argument_group("fleets of logs (one model per log, on a Dask cluster)")
     fleet.add_argument("--fleet", action="store_true",
@@ -100,6 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--targets-from", default="truth", choices=("truth", "sensors"), help="as for identify")
     p.add_argument("--motor-curve", default=None, metavar="VEHICLE|SLOPE,OFFSET", help="as for identify")
+    _add_row_options(p)
     p.set_defaults(func=run_validate)
 
     p = sub.add_parser(
@@ -117,6 +125,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_model_from_vehicle)
 
 
+def _add_row_options(p: argparse.ArgumentParser) -> None:
+    """--window and --all-rows: which rows of the logs to use."""
+    p.add_argument(
+        "--window",
+        action="append",
+        default=None,
+        metavar="START:END",
+        help="keep only rows between START and END seconds of log time (repeatable; replaces the "
+        "automatic airborne detection)",
+    )
+    p.add_argument(
+        "--all-rows",
+        action="store_true",
+        help="no airborne detection: keep every complete row (ground rows too)",
+    )
+
+
 def _output_path(text: str, flag: str) -> Path:
     path = Path(text)
     if path.is_dir():
@@ -127,20 +152,22 @@ def _output_path(text: str, flag: str) -> Path:
     return path
 
 
-def _load(logs: list[str], targets_from: str, motor_curve: str | None):
-    from identification.dataset import Dataset, load_dataset
+def _load(
+    logs: list[str], targets_from: str, motor_curve: str | None, args: argparse.Namespace | None = None
+):
+    """Read, segment and join the logs, printing what was kept and every reason rows were dropped."""
+    from identification.dataset import load_datasets
+    from identification.segmentation import parse_window
 
-    datasets = []
-    for log in logs:
-        d = load_dataset(log, targets=targets_from, motor_curve=motor_curve)
-        for w in d.warnings:
-            print(f"warning: {log}: {w}", file=sys.stderr)
-        if d.dropped_rows:
-            print(f"{log}: dropped {d.dropped_rows} rows", file=sys.stderr)
-        if len(d) == 0:
-            raise UserError(f"flight log {log} gave no usable rows", hint="check the log holds a flight")
-        datasets.append(d)
-    return datasets[0] if len(datasets) == 1 else Dataset.concat(datasets)
+    windows = [parse_window(w) for w in (getattr(args, "window", None) or [])]
+    airborne = not getattr(args, "all_rows", False)
+    dataset = load_datasets(
+        logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne
+    )
+    for line in dataset.segments:
+        print(line, file=sys.stderr)
+    print(dataset.summary(), file=sys.stderr)
+    return dataset
 
 
 def run_fleet(args: argparse.Namespace) -> int:
@@ -185,13 +212,23 @@ def run_identify(args: argparse.Namespace) -> int:
         from identification.pysr_engine import require_pysr
 
         require_pysr(settings.pysr.probe_timeout_s)  # fail before reading the logs
-    vehicle = None
+    vehicle = vehicle_config = None
     if args.vehicle:
         from bridge.vehicle import load_vehicle
         from identification.true_model import vehicle_provenance
 
-        vehicle = vehicle_provenance(load_vehicle(args.vehicle))
-    dataset = _load(args.logs, args.targets_from, args.motor_curve)
+        vehicle_config = load_vehicle(args.vehicle)
+        vehicle = vehicle_provenance(vehicle_config)
+    dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
+    motor = None
+    if args.motor_curve is None:
+        from identification.motor_model import apply_thrust_curve, choose_motor_model
+
+        motor, why = choose_motor_model(dataset.split(args.holdout)[0])
+        if motor is not None:
+            dataset = apply_thrust_curve(dataset, motor)
+        if why:
+            print(why, file=sys.stderr)
     print(
         f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget:g} s "
         f"per target, seed {args.seed}",
@@ -209,14 +246,33 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle=vehicle,
         progress=not args.no_progress,
     )
+    if motor is not None:
+        model.engine["motor_model"] = motor.as_dict()
     save_model(model, out)
     metrics = {n: t.metrics.get("validation", t.metrics.get("train")) for n, t in model.targets.items()}
     print(f"held-out metrics ({args.holdout:.0%} of each flight):")
     print(table_markdown(metrics), end="")
-    for name, t in model.targets.items():
-        print(f"{name} = {t.expression}")
+    _print_and_report(model, motor, dataset, args, out, vehicle_config)
     print(f"wrote {out}")
     return 0
+
+
+def _print_and_report(model, motor, dataset, args: argparse.Namespace, out: Path, vehicle) -> None:
+    """Print the grouped equations and the plausibility checks; write the model report."""
+    from identification.model_report import equations_block, model_flags, write_model_report
+    from identification.plausibility import checks_text, plausibility_checks
+    from identification.quad_model import QuadrotorModel
+
+    fitted = QuadrotorModel.from_model(model, motor)
+    print(equations_block(fitted))
+    checks = plausibility_checks(fitted, dataset.xi, dataset.u, vehicle=vehicle)
+    print(checks_text(checks))
+    train, hold = dataset.split(args.holdout)
+    for flag in model_flags(fitted, hold):
+        print(f"flag: {flag}")
+    folder = Path(args.report) if args.report else out.with_name(out.stem + "_report")
+    md, png = write_model_report(fitted, train, hold, folder, checks, title=f"model report: {out.name}")
+    print(f"wrote {md}, {png}")
 
 
 def run_validate(args: argparse.Namespace) -> int:
@@ -229,7 +285,12 @@ def run_validate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", hint="give a folder for the outputs")
-    dataset = _load([args.log], args.targets_from, args.motor_curve)
+    dataset = _load([args.log], args.targets_from, args.motor_curve, args)
+    if dataset.u_from_throttle or ("motor_model" in model.engine and "throttle" in dataset.aux):
+        from identification.motor_model import apply_thrust_curve, curve_from_dict
+
+        curve = curve_from_dict(model.engine.get("motor_model"), args.model)
+        dataset = apply_thrust_curve(dataset, curve)
     report = validate(model, dataset, out, reference)
     print(f"Table I: {args.model} on {args.log} ({len(dataset)} rows)")
     print(table_markdown(report.metrics), end="")

@@ -13,16 +13,11 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from identification.equation_form import TARGET_LATEX, display_comparison, equation_latex
 from identification.model_file import TARGET_INFO, TARGET_NAMES, Model
 from identification.paper_model import PAPER_ZETA, paper_model
 from identification.validate import PAPER_TABLE, comparison_markdown, table_markdown
-from quadsr.equations import (
-    SIGN_NOTES,
-    TARGET_LATEX,
-    display_comparison,
-    equation_latex,
-    kinematics_match_paper,
-)
+from quadsr.equations import SIGN_NOTES, kinematics_match_paper
 
 if TYPE_CHECKING:
     from quadsr.pipeline import PaperRun, TrackingRow

@@ -54,14 +54,28 @@ MESSAGES = {
     "RCOU": ("QHHHHHHHHHHHHHH", "TimeUS," + ",".join(f"C{i}" for i in range(1, 15))),
     "XKF1": ("QBccCfffffffccce", "TimeUS,C,Roll,Pitch,Yaw,VN,VE,VD,dPD,PN,PE,PD,GX,GY,GZ,OH"),
     "POS": ("QLLfff", "TimeUS,Lat,Lng,Alt,RelHomeAlt,RelOriginAlt"),
+    "BAT": ("QBfffffcf", "TimeUS,Inst,Volt,VoltR,Curr,CurrTot,EnrgTot,Temp,Res"),
+    "EV": ("QB", "TimeUS,Id"),
+}
+
+# ArduCopter 3.2-era definitions (TimeMS in ms, EKF1, RCOU Chan1..Chan8, no RATE or ESC)
+OLD_MESSAGES = {
+    "PARM": ("Nf", "Name,Value"),
+    "MSG": ("Z", "Message"),
+    "IMU": ("Iffffff", "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ"),
+    "ATT": ("IccccCCCC", "TimeMS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw"),
+    "RCOU": ("Ihhhhhhhh", "TimeMS," + ",".join(f"Chan{i}" for i in range(1, 9))),
+    "EKF1": ("IccCffffffccc", "TimeMS,Roll,Pitch,Yaw,VN,VE,VD,PN,PE,PD,GX,GY,GZ"),
+    "POS": ("ILLff", "TimeMS,Lat,Lng,Alt,RelAlt"),
 }
 
 
 class DataFlashWriter:
     """Writes DataFlash records: define(name) emits the FMT record, write(name, **fields) a message."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, messages: dict[str, tuple[str, str]] | None = None):
         self.path = Path(path)
+        self.messages = messages or MESSAGES
         self._fh = self.path.open("wb")
         self._types: dict[str, tuple[int, str, list[str]]] = {}
         self._next_type = 0x81
@@ -73,9 +87,9 @@ class DataFlashWriter:
         self._fh.write(HEAD + bytes([mtype]) + struct.pack("<" + struct_fmt, *values))
 
     def define(self, name: str, fmt: str | None = None, columns: str | None = None) -> None:
-        """Emit the FMT record of a message (ArduCopter's definition unless given)."""
-        fmt = fmt or MESSAGES[name][0]
-        columns = columns or MESSAGES[name][1]
+        """Emit the FMT record of a message (ArduCopter's definition of self.messages unless given)."""
+        fmt = fmt or self.messages[name][0]
+        columns = columns or self.messages[name][1]
         mtype = self._next_type
         self._next_type += 1
         length = 3 + struct.calcsize("<" + "".join(_STRUCT[c] for c in fmt))
@@ -162,6 +176,21 @@ def specific_force(xi: np.ndarray, accel_ned: np.ndarray, g: float) -> np.ndarra
     return np.einsum("nji,nj->ni", r, a)
 
 
+def ekf_fields(x: np.ndarray) -> dict[str, float]:
+    """The EKF record's attitude (deg, yaw 0..360), velocity NED (m/s) and position NED (m) of a state."""
+    return {
+        "Roll": math.degrees(x[6]),
+        "Pitch": math.degrees(x[7]),
+        "Yaw": math.degrees(x[8]) % 360.0,
+        "VN": x[3],
+        "VE": x[4],
+        "VD": x[5],
+        "PN": x[0],
+        "PE": x[1],
+        "PD": x[2],
+    }
+
+
 def write_flight(
     path: str | Path,
     flight: SyntheticFlight,
@@ -193,6 +222,7 @@ def write_flight(
     for name, value in params.items():
         w.write("PARM", TimeUS=time0_us - 500, Name=name, Value=value, Default=value)
     f = specific_force(flight.xi, flight.accel[:, :3], g)
+    w.write("EV", TimeUS=time0_us - 200, Id=10)  # ARMED
     lat0, lon0, alt0 = -35.363261, 149.165230, 584.0
     motor_of_channel = {ch: m for m, ch in enumerate(channel_of_motor)}
     for k, tk in enumerate(flight.t):
@@ -227,22 +257,11 @@ def write_flight(
             for ch in sorted(motor_of_channel):
                 rpm = flight.u[k, motor_of_channel[ch]] * 60.0 / (2.0 * math.pi)
                 w.write("ESC", TimeUS=tu, Instance=ch - 1, RPM=rpm, RawRPM=rpm, Volt=16.0, Curr=5.0, Temp=30)
+        if k % 25 == 0:
+            w.write("BAT", TimeUS=tu, Inst=0, Volt=16.0 - 0.1 * tk, VoltR=16.0, Curr=5.0)
         if k % xkf_every == 0:
             if with_xkf1:
-                w.write(
-                    "XKF1",
-                    TimeUS=tu,
-                    C=0,
-                    Roll=math.degrees(x[6]),
-                    Pitch=math.degrees(x[7]),
-                    Yaw=math.degrees(x[8]) % 360.0,
-                    VN=x[3],
-                    VE=x[4],
-                    VD=x[5],
-                    PN=x[0],
-                    PE=x[1],
-                    PD=x[2],
-                )
+                w.write("XKF1", TimeUS=tu, C=0, **ekf_fields(x))
                 w.write(
                     "XKF1", TimeUS=tu, C=1, VN=99.0, VE=99.0, VD=99.0, PN=99.0, PE=99.0, PD=99.0
                 )  # core 1
@@ -252,5 +271,44 @@ def write_flight(
                 w.write(
                     "POS", TimeUS=tu, Lat=lat, Lng=lon, Alt=alt0 - x[2], RelHomeAlt=-x[2], RelOriginAlt=-x[2]
                 )
+    w.close()
+    return Path(path)
+
+
+def write_old_flight(
+    path: str | Path, flight: SyntheticFlight, *, g: float = 9.8, rc3: tuple[int, int] = (1100, 1900)
+) -> Path:
+    """Write a synthetic flight as an ArduCopter 3.2-era DataFlash log: TimeMS, IMU/ATT/RCOU at 50 Hz,
+    EKF1 at 25 Hz, ATT in centidegrees, RCOU Chan1..4 in the RC3_MIN..RC3_MAX range with MOT_PWM_MIN/MAX = 0
+    (ArduCopter then uses the throttle channel's range), no RATE, ESC or SERVOn_FUNCTION."""
+    w = DataFlashWriter(path, OLD_MESSAGES)
+    for name in OLD_MESSAGES:
+        w.define(name)
+    w.write("MSG", Message="ArduCopter V3.2.1 (synthetic)")
+    params = {"MOT_PWM_MIN": 0.0, "MOT_PWM_MAX": 0.0, "RC3_MIN": float(rc3[0]), "RC3_MAX": float(rc3[1])}
+    for name, value in params.items():
+        w.write("PARM", Name=name, Value=value)
+    f = specific_force(flight.xi, flight.accel[:, :3], g)
+    for k, tk in enumerate(flight.t):
+        tm = 5000 + int(round(tk * 1e3))
+        x = flight.xi[k]
+        if k % 5 == 0:  # 50 Hz: TimeMS resolves 1 ms, so every 4 ms sample would repeat times
+            w.write(
+                "IMU", TimeMS=tm, GyrX=x[9], GyrY=x[10], GyrZ=x[11], AccX=f[k, 0], AccY=f[k, 1], AccZ=f[k, 2]
+            )
+            w.write(
+                "ATT",
+                TimeMS=tm,
+                Roll=math.degrees(x[6]),
+                Pitch=math.degrees(x[7]),
+                Yaw=math.degrees(x[8]) % 360.0,
+            )
+            pwm = {
+                f"Chan{m + 1}": int(round(rc3[0] + (rc3[1] - rc3[0]) * flight.throttle[k, m]))
+                for m in range(4)
+            }
+            w.write("RCOU", TimeMS=tm, **pwm)
+        if k % 10 == 0:
+            w.write("EKF1", TimeMS=tm, **ekf_fields(x))
     w.close()
     return Path(path)

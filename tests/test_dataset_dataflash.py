@@ -83,7 +83,7 @@ def test_position_from_pos_when_there_is_no_ekf(flight, tmp_path):
     path = write_flight(tmp_path / "no_ekf.bin", flight, with_xkf1=False)
     ds = load_dataset(path)
     xi, _, _ = truth_rows(flight, ds)
-    assert any("no XKF1" in w for w in ds.warnings)
+    assert any("no XKF1/NKF1/EKF1" in w for w in ds.warnings)
     # local NED from the first fix: displacements match the true ones (lat/lon in 1e-7 deg: ~1 cm)
     assert np.abs((ds.xi[:, 0:3] - ds.xi[0, 0:3]) - (xi[:, 0:3] - xi[0, 0:3])).max() < 0.05
     # velocity differentiated from 25 Hz fixes quantized to 1e-7 deg (~1 cm): a few cm/s RMS
@@ -94,10 +94,10 @@ def test_missing_messages_are_named(flight, tmp_path):
     no_att = write_flight(tmp_path / "no_att.bin", flight, with_att=False)
     with pytest.raises(UserError, match="no_att.bin has no ATT messages; they are needed for the attitude"):
         load_dataset(no_att)
-    no_esc = write_flight(tmp_path / "no_esc.bin", flight, with_esc=False)
-    with pytest.raises(UserError, match="no_esc.bin has no ESC messages") as info:
-        load_dataset(no_esc)
-    assert "motor curve" in str(info.value)
+    bare = write_flight(tmp_path / "bare.bin", flight, with_esc=False, with_rcou=False)
+    with pytest.raises(UserError, match="bare.bin has no ESC messages") as info:
+        load_dataset(bare)
+    assert "RCOU" in str(info.value)
 
 
 def test_truncated_corrupt_and_empty_logs(binlog, tmp_path):
@@ -120,3 +120,55 @@ def test_truncated_corrupt_and_empty_logs(binlog, tmp_path):
     no_data.write_bytes(data[:first_imu])  # FMT, MSG and PARM records only
     with pytest.raises(UserError, match="formats_only.bin has no ATT messages"):
         load_dataset(no_data)
+
+
+def test_old_arducopter_log_timems_ekf1_and_rc3_range(flight, tmp_path):
+    """A Copter 3.2-era log: TimeMS, EKF1, RCOU Chan1..4, MOT_PWM_MIN/MAX = 0 (so RC3_MIN/MAX), no RATE."""
+    from dataflash_fixture import write_old_flight
+
+    path = write_old_flight(tmp_path / "old.bin", flight, rc3=(1100, 1900))
+    ds = load_dataset(path, airborne=False)
+    assert len(ds) > 100 and ds.u_from_throttle
+    k = np.round((ds.t - T0) / 0.004).astype(int)
+    # ATT in centidegrees, EKF1 position and velocity, rates from the IMU gyro: the true states
+    assert np.abs(ds.xi[:, 6:9] - flight.xi[k, 6:9]).max() < 1e-3
+    assert np.abs(ds.xi[:, 0:6] - flight.xi[k, 0:6]).max() < 0.05
+    assert np.abs(ds.xi[:, 9:12] - flight.xi[k, 9:12]).max() < 0.05
+    # PWM mapped with RC3_MIN/MAX (1100..1900), not 1000..2000: the throttles come back to 1e-2
+    assert np.abs(ds.aux["throttle"] - flight.throttle[k]).max() < 0.01
+    assert any("RC3_MIN/MAX" in w for w in ds.warnings)
+
+
+def test_battery_arming_and_throttle_side_columns(flight, binlog):
+    ds = load_dataset(binlog, airborne=False)
+    assert (ds.aux["armed"] == 1.0).all()
+    assert np.allclose(ds.aux["voltage"], 16.0 - 0.1 * (ds.t - T0), atol=0.02)  # BAT Volt, interpolated
+    k = np.round((ds.t - T0) / 0.004).astype(int)
+    assert np.abs(ds.aux["throttle"] - flight.throttle[k]).max() < 1e-3
+
+
+def test_without_esc_the_motor_commands_go_through_a_thrust_curve(flight, tmp_path):
+    from identification.motor_model import apply_thrust_curve, fit_thrust_curve
+
+    path = write_flight(tmp_path / "no_esc.bin", flight, with_esc=False)
+    ds = load_dataset(path, airborne=False)
+    assert ds.u_from_throttle
+    curve = fit_thrust_curve(ds)
+    fitted = apply_thrust_curve(ds, curve)
+    # the vehicle's rotor speed is linear in throttle (w = 1148 s - 141), so thrust ~ w^2 is nearly
+    # quadratic in throttle: the fit must pick a k well above 0, and explain the thrust direction
+    assert curve.k >= 0.6 and curve.r2 > 0.9
+    k = np.round((ds.t - T0) / 0.004).astype(int)
+    ratio = (fitted.u**2).sum(axis=1) / (flight.u[k] ** 2).sum(axis=1)
+    assert ratio.std() / ratio.mean() < 0.1  # u^2 proportional to the true thrust within 10%
+
+
+def test_logs_with_and_without_rotor_speeds_do_not_mix(flight, binlog, tmp_path):
+    from identification.dataset import load_datasets
+
+    no_esc = write_flight(tmp_path / "commands_only.bin", flight, with_esc=False)
+    with pytest.raises(UserError, match="some logs have rotor speeds") as info:
+        load_datasets([binlog, no_esc], airborne=False)
+    assert "--motor-curve" in str(info.value)
+    both = load_datasets([binlog, no_esc], airborne=False, motor_curve="fang-chen-buaa")
+    assert len(both.flights) == 2 and not both.u_from_throttle

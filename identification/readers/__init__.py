@@ -3,7 +3,8 @@ and the row filter that drops and counts bad rows before a Dataset is made.
 
 Resampling: each stream (one log topic's columns) is linearly interpolated at the timeline's times
 ('linear'), held at its last value ('hold', for flags), or unwrapped before and wrapped after
-interpolation ('angle'). A row has a gap in a stream when the two samples around it are more than the
+interpolation ('angle'). A 'hold' stream with no max gap (a state such as armed or landed) holds its last
+value after its last sample too. A row has a gap in a stream when the two samples around it are more than the
 stream's max_gap apart, or the row lies outside the stream's time span; such rows are dropped and counted.
 """
 
@@ -17,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
-from identification.dataset import Dataset, file_sha256
+from identification.table import Dataset, file_sha256
 from identification.targets import wrap_angle
 
 GAP_FACTOR = 4.0  # a stream's max gap: this many of its median sample intervals
@@ -63,7 +64,7 @@ class Stream:
             out[near] = self.values[0]
             return out, near
         i = np.searchsorted(self.t, tl, side="right")  # t[i-1] <= tl < t[i]
-        inside = (tl >= self.t[0]) & (tl <= self.t[-1])
+        inside = (tl >= self.t[0]) & ((tl <= self.t[-1]) | (self.kind == "hold" and self.max_gap == np.inf))
         lo = np.clip(i - 1, 0, len(self.t) - 1)
         hi = np.clip(i, 0, len(self.t) - 1)
         exact = inside & (self.t[lo] == tl)
@@ -234,8 +235,11 @@ def make_dataset(
     rows: RowFilter,
     warnings: list[str],
     extra_dropped: dict[str, int] | None = None,
+    aux: dict[str, np.ndarray] | None = None,
 ) -> Dataset:
-    """The Dataset of the rows that survive the filter (plus NaN checks), with drops counted by reason."""
+    """The Dataset of the rows that survive the filter (plus NaN checks), with drops counted by reason.
+
+    aux: side columns per timeline row (identification.table.AUX_NAMES), kept for the surviving rows."""
     rows.drop_nonfinite("NaN in states or rotor speeds", xi, u)
     rows.drop_nonfinite("no target (differentiation edge or gap)", targets)
     keep, counts = rows.keep_mask()
@@ -259,4 +263,5 @@ def make_dataset(
         drop_reasons=counts,
         warnings=list(warnings),
         sha256=file_sha256(path),
+        aux={k: np.asarray(v, dtype=float)[keep] for k, v in (aux or {}).items()},
     )

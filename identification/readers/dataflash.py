@@ -1,23 +1,27 @@
-"""ArduPilot DataFlash (.bin, through pymavlink's DFReader) -> Dataset.
+"""ArduPilot DataFlash (.bin, through pymavlink's DFReader) -> Dataset, from ArduCopter 3.2 to today.
 
-Messages (times from TimeUS, us since boot):
+Messages (times from TimeUS, us since boot; TimeMS, ms, in logs before Copter 3.3):
 - ATT: Roll, Pitch, Yaw in degrees (Yaw 0..360) -> ZYX Euler rad, wrapped to [-pi, pi). Its times are the
   default timeline (rate_hz gives a uniform one instead).
 - RATE: R, P, Y body rates in deg/s -> FRD rad/s (ArduPilot's body frame is also x forward, y right, z
-  down). Without RATE, the gyro of IMU instance 0 is used.
-- XKF1 (EKF3 core C = 0; NKF1 for EKF2 logs): PN PE PD (m) and VN VE VD (m/s), NED from the EKF origin.
-  Without it, POS (Lat, Lng in deg, Alt in m AMSL) made local NED (flat earth from the first fix), with
-  the velocity by Savitzky-Golay differentiation, and a warning.
+  down). Without RATE (old logs), the gyro of IMU instance 0 is used.
+- XKF1 (EKF3 core C = 0; NKF1 for EKF2 logs; EKF1 for Copter <= 3.4): PN PE PD (m) and VN VE VD (m/s),
+  NED from the EKF origin. Without any, POS (Lat, Lng in deg, Alt in m AMSL) made local NED (flat earth
+  from the first fix), with the velocity by Savitzky-Golay differentiation, and a warning.
 - IMU (instance 0): GyrX..Z (rad/s) and AccX..Z (specific force, m/s^2), FRD.
-- rotor speeds: ESC RPM (rpm -> rad/s) per Instance, or with a motor curve RCOU C1..C14 PWM (us) ->
-  throttle (PWM - MOT_PWM_MIN) / (MOT_PWM_MAX - MOT_PWM_MIN) (1000 and 2000 us when unset) -> curve.
+- rotor speeds: ESC RPM (rpm -> rad/s) per Instance when the ESCs report a non-zero rpm. Otherwise RCOU
+  (C1..C14, or Chan1..Chan8 in old logs) PWM (us) -> throttle (PWM - min) / (max - min) with ArduCopter's
+  range: MOT_PWM_MIN/MAX, or RC3_MIN/MAX when those are 0, or 1000/2000 us -> a --motor-curve when given,
+  else the thrust curve of identification.motor_model (fitted at identification).
   Motor order: ArduPilot's Quad-X numbers its motors like PX4 (AP_MotorsMatrix: motor 1 at 45 deg =
   front-right CCW, 2 at -135 deg = rear-left CCW, 3 at -45 deg = front-left CW, 4 at 135 deg = rear-right
   CW; only the motor-test letters A-D go round clockwise: A = 1, B = 4, C = 2, D = 3). What differs per
   airframe is which output channel drives which motor: SERVOn_FUNCTION = 33..36 means channel n drives
   motor 1..4. We map RCOU channel n and ESC instance n-1 through those parameters (identity when the log
   has none) into u1..u4 in PX4 order.
-- targets 'truth': the log's state differentiated (XKF1 velocity, RATE rates) by Savitzky-Golay with each
+- side columns (identification.table): throttle (RCOU), voltage (BAT Volt, instance 0), armed (EV 10/11),
+  accel_dev (IMU) for the flight segmentation and the motor model.
+- targets 'truth': the log's state differentiated (EKF velocity, RATE rates) by Savitzky-Golay with each
   column's window chosen as for sensor targets (identification.targets.choose_savgol); a 25 Hz XKF1
   follows only the slower accelerations. 'sensors': IMU specific force rotated with ATT plus g, IMU gyro
   differentiated (identification.targets), at the IMU rate, then resampled.
@@ -35,8 +39,9 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
-from identification.dataset import Dataset
+from identification.motor_model import ThrustCurve
 from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
@@ -48,7 +53,8 @@ from identification.targets import (
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 MOTOR_FUNCTIONS = (33, 34, 35, 36)  # SERVOn_FUNCTION of Motor1..Motor4
 EARTH_RADIUS = 6378137.0  # m, WGS84 equatorial
-WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "POS", "ESC", "RCOU")
+WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "EKF1", "POS", "ESC", "RCOU", "BAT", "EV")
+EV_ARMED, EV_DISARMED = 10, 11  # EV Id of ArduCopter's ARMED and DISARMED events
 
 
 def _walk(data: bytes) -> tuple[int, int]:
@@ -121,7 +127,12 @@ def _field(msgs: list[Any], name: str, path: Path) -> np.ndarray:
 
 
 def _times(msgs: list[Any], path: Path) -> np.ndarray:
-    return _field(msgs, "TimeUS", path) * 1e-6
+    """Record times (s since boot): TimeUS (us), or TimeMS (ms) in logs before ArduCopter 3.3."""
+    if hasattr(msgs[0], "TimeUS"):
+        return _field(msgs, "TimeUS", path) * 1e-6
+    if hasattr(msgs[0], "TimeMS"):
+        return _field(msgs, "TimeMS", path) * 1e-3
+    raise UserError(f"dataflash log {path}: {msgs[0].get_type()} has no time field (TimeUS or TimeMS)")
 
 
 def _motor_of_channel(params: dict[str, float]) -> dict[int, int]:
@@ -160,19 +171,59 @@ def _esc_stream(msgs: list[Any], channels: dict[int, int], path: Path) -> Stream
     return Stream("ESC", times, speeds)
 
 
-def _rcou_stream(msgs: list[Any], channels: dict[int, int], params: dict[str, float], path: Path) -> Stream:
-    lo = params.get("MOT_PWM_MIN") or 1000.0
-    hi = params.get("MOT_PWM_MAX") or 2000.0
+def pwm_range(params: dict[str, float]) -> tuple[float, float, str]:
+    """(min, max) motor PWM (us) as ArduCopter uses it, and where it came from: MOT_PWM_MIN/MAX, or the
+    throttle channel's RC3_MIN/MAX when those are 0 (unset), or 1000/2000 us when the log has neither."""
+    lo, hi = params.get("MOT_PWM_MIN") or 0.0, params.get("MOT_PWM_MAX") or 0.0
+    if lo > 0 and hi > lo:
+        return float(lo), float(hi), "MOT_PWM_MIN/MAX"
+    lo, hi = params.get("RC3_MIN") or 0.0, params.get("RC3_MAX") or 0.0
+    if lo > 0 and hi > lo:
+        return float(lo), float(hi), "RC3_MIN/MAX (MOT_PWM_MIN/MAX = 0)"
+    return 1000.0, 2000.0, "1000-2000 us (no MOT_PWM_MIN/MAX or RC3_MIN/MAX in the log)"
+
+
+def _rcou_stream(
+    msgs: list[Any], channels: dict[int, int], params: dict[str, float], path: Path, notes: list[str]
+) -> Stream:
+    """Motor throttles in [0, 1] (motor order) from RCOU PWM: C1..C14, or Chan1..Chan8 in old logs."""
+    lo, hi, source = pwm_range(params)
     t = _times(msgs, path)
     thr = np.full((len(t), 4), np.nan)
+    prefix = "C" if hasattr(msgs[0], "C1") else "Chan"
     for ch, motor in channels.items():
-        thr[:, motor] = np.clip((_field(msgs, f"C{ch}", path) - lo) / (hi - lo), 0.0, 1.0)
+        thr[:, motor] = np.clip((_field(msgs, f"{prefix}{ch}", path) - lo) / (hi - lo), 0.0, 1.0)
+    notes.append(f"motor commands from RCOU PWM {lo:g}-{hi:g} us ({source})")
     return Stream("RCOU", t, thr)
+
+
+def _aux_streams(msgs: dict[str, list[Any]], imu: list[Any], path: Path) -> dict[str, Stream]:
+    """Side columns for segmentation and the motor model: armed (EV), voltage (BAT), accel_dev (IMU)."""
+    out = {}
+    events = [m for m in msgs["EV"] if getattr(m, "Id", None) in (EV_ARMED, EV_DISARMED)]
+    if events:
+        armed = np.array([1.0 if m.Id == EV_ARMED else 0.0 for m in events])
+        t = _times(events, path)
+        out["armed"] = Stream(
+            "EV", np.concatenate(([0.0], t)), np.concatenate(([0.0], armed)), "hold", np.inf
+        )
+    bat = [m for m in msgs["BAT"] if getattr(m, "Inst", getattr(m, "Instance", 0)) == 0]
+    if bat and hasattr(bat[0], "Volt"):
+        v = _field(bat, "Volt", path)
+        good = v > 0
+        if good.any():
+            out["voltage"] = Stream("BAT", _times(bat, path)[good], v[good], max_gap=np.inf)
+    if imu:
+        f = np.linalg.norm(np.column_stack([_field(imu, c, path) for c in ("AccX", "AccY", "AccZ")]), axis=1)
+        out["accel_dev"] = Stream(
+            "IMU accel", _times(imu, path), np.abs(f - STANDARD_GRAVITY), max_gap=np.inf
+        )
+    return out
 
 
 def _position_streams(msgs: dict[str, list[Any]], path: Path, notes: list[str]) -> Stream:
     """Position NED (m) and velocity NED (m/s) as one stream, from XKF1 core 0 or else POS."""
-    ekf = msgs["XKF1"] or msgs["NKF1"]
+    ekf = msgs["XKF1"] or msgs["NKF1"] or msgs["EKF1"]
     if ekf:
         core = _field(ekf, "C", path) if hasattr(ekf[0], "C") else np.zeros(len(ekf))
         first = [m for m, c in zip(ekf, core, strict=True) if c == core.min()]
@@ -180,7 +231,7 @@ def _position_streams(msgs: dict[str, list[Any]], path: Path, notes: list[str]) 
         return Stream(
             ekf[0].get_type(), _times(first, path), np.column_stack([_field(first, c, path) for c in cols])
         )
-    pos = _need(msgs, "POS", path, "the position and velocity (no XKF1 either)")
+    pos = _need(msgs, "POS", path, "the position and velocity (no XKF1, NKF1 or EKF1 either)")
     t = _times(pos, path)
     lat, lon, alt = (_field(pos, c, path) for c in ("Lat", "Lng", "Alt"))
     north = np.radians(lat - lat[0]) * EARTH_RADIUS
@@ -188,7 +239,9 @@ def _position_streams(msgs: dict[str, list[Any]], path: Path, notes: list[str]) 
     down = -(alt - alt[0])
     p = np.column_stack((north, east, down))
     v = stream_derivative(t, p)
-    notes.append("no XKF1: position from POS (flat earth from the first fix), velocity by differentiating it")
+    notes.append(
+        "no XKF1/NKF1/EKF1: position from POS (flat earth from the first fix), velocity by differentiating it"
+    )
     return Stream("POS", t, np.column_stack((p, v)))
 
 
@@ -230,13 +283,24 @@ def read_dataflash_dataset(
         )
         notes.append("no RATE: body rates from the IMU gyro")
     s_pos = _position_streams(msgs, path, notes)
-    if rotor is None:
-        esc = _need(msgs, "ESC", path, "the rotor speeds (RPM); or pass a motor curve to use RCOU")
+    esc = msgs["ESC"] if any(getattr(m, "RPM", 0) for m in msgs["ESC"]) else []
+    use_esc = rotor is None and bool(esc)
+    s_thr = (
+        _rcou_stream(msgs["RCOU"], channels, params, path, [] if use_esc else notes) if msgs["RCOU"] else None
+    )
+    if use_esc:
         s_rotor = _esc_stream(esc, channels, path)
     else:
-        rcou = _need(msgs, "RCOU", path, "the motor commands (PWM) mapped through the motor curve")
-        s_rotor = _rcou_stream(rcou, channels, params, path)
-        notes.append(f"rotor speeds from RCOU PWM through {rotor.description}")
+        if s_thr is None:
+            _need(msgs, "ESC", path, "the rotor speeds (RPM); without them the motor commands (RCOU)")
+        s_rotor = s_thr
+        if rotor is not None:
+            notes.append(f"rotor speeds from RCOU PWM through {rotor.description}")
+        else:
+            notes.append(
+                "no ESC rpm: u from the RCOU motor commands through a thrust curve (identification."
+                "motor_model; fitted when the model is identified), or pass --motor-curve"
+            )
 
     settings = sensor_settings or SensorTargetSettings()
     if targets == "truth":
@@ -271,7 +335,18 @@ def read_dataflash_dataset(
         thr = vals[s_rotor.name]
         u, settled = rotor.speeds(timeline, thr)
         filt.drop("motor lag settling after the start or a gap", ~settled & np.isfinite(thr).all(axis=1))
-    else:
+    elif use_esc:
         u = vals[s_rotor.name]
+    else:
+        u = ThrustCurve().speeds(vals[s_rotor.name], None)
+    aux = {}
+    for name, stream in _aux_streams(msgs, imu, path).items():
+        v, ok = stream.resample(timeline)
+        aux[name] = np.where(ok, v[:, 0], np.nan)
+    if s_thr is not None:
+        v, ok = s_thr.resample(timeline)
+        aux["throttle"] = np.where(ok[:, None], v, np.nan)
     tgt = np.concatenate((vals[s_tgt.name], vals[s_dw.name]), axis=1)
-    return make_dataset(path, "dataflash", targets, timeline, xi, u, tgt, filt, notes)
+    ds = make_dataset(path, "dataflash", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
+    ds.u_from_throttle = rotor is None and not use_esc
+    return ds

@@ -23,8 +23,8 @@ import numpy as np
 from bridge.errors import UserError
 from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT, RPM_TO_RAD_S, ObservationAssembler
 from bridge.tlog import read_tlog
-from identification.dataset import Dataset
 from identification.readers import RowFilter, make_dataset, rotor_model
+from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,

@@ -30,20 +30,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d
 
 from bridge.errors import UserError
-from identification.dataset import Dataset
+from identification.motor_model import ThrustCurve
 from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
     euler_from_quaternions,
     nominal_step,
     sensor_targets,
+    stream_derivative,
 )
 
 RPM_TO_RAD_S = 2.0 * np.pi / 60.0
 MOTOR_FUNCTIONS = (101, 102, 103, 104)  # PX4 output functions Motor 1..4
+ARMING_STATE_ARMED = 2  # vehicle_status.arming_state ARMED (v1.6 era and today)
+DEFAULT_RATE_HZ = 50.0  # the timeline of logs without vehicle_angular_velocity
 
 
 def _open(path: Path) -> tuple[Any, list[str]]:
@@ -170,7 +175,22 @@ def _output_functions(params: dict[str, Any]) -> tuple[dict[int, int], str | Non
     return found[prefix], prefix
 
 
+def _pwm_range(params: dict[str, Any], prefix: str | None, channel: int) -> tuple[float, float]:
+    """(min, max) PWM us of an output channel (0-based): <PREFIX>_MINn/MAXn, else PWM_MIN/PWM_MAX (v1.6
+    era), else PX4's defaults 1000 and 2000 us."""
+    lo = params.get(f"{prefix}_MIN{channel + 1}") if prefix else None
+    hi = params.get(f"{prefix}_MAX{channel + 1}") if prefix else None
+    lo = float(lo if lo is not None else params.get("PWM_MIN", 1000.0))
+    hi = float(hi if hi is not None else params.get("PWM_MAX", 2000.0))
+    return lo, hi
+
+
+# PX4's Quad-X mixer: throttle of motors 1..4 = thrust + roll*r + pitch*p + yaw*y (actuator_controls_0)
+QUAD_X_MIX = np.array([[-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, -1.0]])
+
+
 def _actuator_throttle_stream(topics: _Topics, notes: list[str]) -> Stream:
+    """Motor throttles in [0, 1] (motor order): actuator_outputs, actuator_motors or actuator_controls_0."""
     params = topics.ulog.initial_parameters
     if topics.has("actuator_outputs"):
         data = topics.get("actuator_outputs", "the motor commands")
@@ -184,24 +204,111 @@ def _actuator_throttle_stream(topics: _Topics, notes: list[str]) -> Stream:
                 hint="check the <PREFIX>_FUNCn parameters (101..104 = motors 1..4)",
             )
         pwm = max(np.nanmax(v) for v in raw.values()) > 2.0
+        ranges = set()
         for ch, values in raw.items():
             motor = channels[ch]
             if pwm:
-                lo = float(params.get(f"{prefix}_MIN{ch + 1}", 1000.0)) if prefix else 1000.0
-                hi = float(params.get(f"{prefix}_MAX{ch + 1}", 2000.0)) if prefix else 2000.0
+                lo, hi = _pwm_range(params, prefix, ch)
+                ranges.add(f"{lo:g}-{hi:g}")
                 thr[:, motor] = np.clip((values - lo) / (hi - lo), 0.0, 1.0)
             else:
                 thr[:, motor] = np.clip(values, 0.0, 1.0)
-        how = "PWM us, (v - min)/(max - min)" if pwm else "normalized"
-        notes.append(f"rotor speeds from actuator_outputs ({how}; channels by {prefix or 'default'}_FUNCn)")
+        how = f"PWM us {', '.join(sorted(ranges))}, (v - min)/(max - min)" if pwm else "normalized"
+        notes.append(f"motor commands from actuator_outputs ({how}; channels by {prefix or 'default'}_FUNCn)")
         return Stream("actuator_outputs", t, thr)
-    data = topics.get("actuator_motors", "the motor commands (no actuator_outputs either)")
-    t = topics.times(data)
-    thr = np.clip(
-        _Topics.columns(data, [f"control[{i}]" for i in range(4)], "actuator_motors", topics.path), 0, 1
+    if topics.has("actuator_motors"):
+        data = topics.get("actuator_motors", "the motor commands")
+        thr = np.clip(
+            _Topics.columns(data, [f"control[{i}]" for i in range(4)], "actuator_motors", topics.path), 0, 1
+        )
+        notes.append("motor commands from actuator_motors (normalized thrust, motor order)")
+        return Stream("actuator_motors", topics.times(data), thr)
+    data = topics.get(
+        "actuator_controls_0", "the motor commands (no actuator_motors or actuator_outputs either)"
     )
-    notes.append("rotor speeds from actuator_motors (normalized thrust commands)")
-    return Stream("actuator_motors", t, thr)
+    c = _Topics.columns(data, [f"control[{i}]" for i in range(4)], "actuator_controls_0", topics.path)
+    thr = np.clip(c[:, 3:4] + c[:, :3] @ QUAD_X_MIX.T, 0.0, 1.0)
+    notes.append("motor commands from actuator_controls_0 through PX4's Quad-X mixer (no output topic)")
+    return Stream("actuator_controls_0", topics.times(data), thr)
+
+
+def _esc_is_real(topics: _Topics) -> bool:
+    """True when the log has esc_status with non-zero rpm for four motors."""
+    if not topics.has("esc_status"):
+        return False
+    data = topics.get("esc_status", "the rotor speeds")
+    rpm = [np.asarray(data.get(f"esc[{i}].esc_rpm", [0]), dtype=float) for i in range(4)]
+    return all(np.nanmax(np.abs(r)) > 0 for r in rpm)
+
+
+def _rate_stream(topics: _Topics, notes: list[str]) -> tuple[Stream, Stream | None]:
+    """(body rates FRD rad/s, the log's angular accelerations FRD rad/s^2 or None) from the best topic."""
+    path = topics.path
+    if topics.has("vehicle_angular_velocity"):
+        av = topics.get("vehicle_angular_velocity", "the body rates")
+        t = topics.times(av)
+        cols = [f"xyz[{i}]" for i in range(3)]
+        rates = Stream(
+            "vehicle_angular_velocity", t, _Topics.columns(av, cols, "vehicle_angular_velocity", path)
+        )
+        deriv_cols = [f"xyz_derivative[{i}]" for i in range(3)]
+        if all(c in av for c in deriv_cols):
+            d = _Topics.columns(av, deriv_cols, "vehicle_angular_velocity", path)
+            if np.abs(d).max() > 0:
+                return rates, Stream("vehicle_angular_velocity derivative", t, d)
+        notes.append(
+            "vehicle_angular_velocity has no xyz_derivative: angular accelerations by differentiation"
+        )
+        return rates, None
+    att = topics.get("vehicle_attitude", "the attitude")
+    cols = ["rollspeed", "pitchspeed", "yawspeed"]
+    if all(k in att for k in cols):
+        notes.append(
+            "no vehicle_angular_velocity: body rates from vehicle_attitude rollspeed/pitchspeed/yawspeed"
+        )
+        values = _Topics.columns(att, cols, "vehicle_attitude", path)
+        return Stream("vehicle_attitude rates", topics.times(att), values), None
+    if topics.has("sensor_combined"):
+        sc = topics.get("sensor_combined", "the body rates")
+        notes.append("no vehicle_angular_velocity: body rates from sensor_combined.gyro_rad")
+        values = _Topics.columns(sc, [f"gyro_rad[{i}]" for i in range(3)], "sensor_combined", path)
+        return Stream("sensor_combined gyro", topics.times(sc), values), None
+    raise UserError(
+        f"px4 log {path} has no body rates: none of vehicle_angular_velocity, vehicle_attitude "
+        "rollspeed/pitchspeed/yawspeed, sensor_combined.gyro_rad",
+        hint=f"topics in this log: {', '.join(topics.names)}",
+    )
+
+
+def _aux_streams(topics: _Topics) -> dict[str, Stream]:
+    """Side columns for segmentation and the motor model: landed, armed, battery voltage, accel_dev."""
+    out = {}
+    if topics.has("vehicle_land_detected"):
+        ld = topics.get("vehicle_land_detected", "ground contact")
+        landed = ld["landed"].astype(float)
+        out["landed"] = Stream("vehicle_land_detected", topics.times(ld), landed, kind="hold", max_gap=np.inf)
+    if topics.has("vehicle_status"):
+        vs = topics.get("vehicle_status", "the arming state")
+        if "arming_state" in vs:
+            armed = (vs["arming_state"] == ARMING_STATE_ARMED).astype(float)
+            out["armed"] = Stream("vehicle_status", topics.times(vs), armed, kind="hold", max_gap=np.inf)
+    if topics.has("battery_status"):
+        bs = topics.get("battery_status", "the battery voltage")
+        key = "voltage_filtered_v" if "voltage_filtered_v" in bs else "voltage_v"
+        v = bs[key].astype(float)
+        if np.nanmax(v) > 0:
+            good = v > 0
+            out["voltage"] = Stream("battery_status", topics.times(bs)[good], v[good], max_gap=np.inf)
+    if topics.has("sensor_combined"):
+        sc = topics.get("sensor_combined", "the accelerometer")
+        cols = [f"accelerometer_m_s2[{i}]" for i in range(3)]
+        if all(c in sc for c in cols):
+            f = np.linalg.norm(_Topics.columns(sc, cols, "sensor_combined", topics.path), axis=1)
+            dev = np.abs(f - STANDARD_GRAVITY)
+            t = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
+            width = max(1, int(round(0.02 / max(float(np.median(np.diff(t))), 1e-4))))
+            out["accel_dev"] = Stream("sensor_combined accel", t, maximum_filter1d(dev, 2 * width + 1))
+    return out
 
 
 def read_ulog_dataset(
@@ -212,24 +319,33 @@ def read_ulog_dataset(
     gravity: float | None = None,
     sensor_settings: SensorTargetSettings | None = None,
 ) -> Dataset:
-    """Dataset of a PX4 ULog: estimator states, rotor speeds (esc rpm or outputs via a curve), targets."""
+    """Dataset of a PX4 ULog: estimator states, rotor speeds (esc rpm or commands), targets, side columns."""
     ulog, notes = _open(path)
     topics = _Topics(ulog, path)
     lp = topics.get("vehicle_local_position", "position and velocity (and the 'truth' linear accelerations)")
     att = topics.get("vehicle_attitude", "the attitude")
-    av = topics.get("vehicle_angular_velocity", "the body rates (and the 'truth' angular accelerations)")
     rotor: RotorModel | None = rotor_model(motor_curve)
 
-    pos_cols = ["x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az"]
-    s_lp = Stream(
-        "vehicle_local_position",
-        topics.times(lp),
-        _Topics.columns(lp, pos_cols, "vehicle_local_position", path),
-    )
+    t_lp = topics.times(lp)
+    pos = _Topics.columns(lp, ["x", "y", "z", "vx", "vy", "vz"], "vehicle_local_position", path)
+    s_lp = Stream("vehicle_local_position", t_lp, pos)
+    if all(c in lp for c in ("ax", "ay", "az")):
+        acc = _Topics.columns(lp, ["ax", "ay", "az"], "vehicle_local_position", path)
+        s_acc = Stream("vehicle_local_position acceleration", t_lp, acc)
+    else:
+        s_acc = Stream(
+            "vehicle_local_position velocity derivative",
+            s_lp.t,
+            stream_derivative(s_lp.t, s_lp.values[:, 3:6]),
+        )
+        notes.append(
+            f"vehicle_local_position has no ax/ay/az: 'truth' accelerations by differentiating its velocity "
+            f"({s_lp.rate_hz:.0f} Hz: only the slow part)"
+        )
     flags = [f for f in ("xy_valid", "z_valid", "v_xy_valid", "v_z_valid") if f in lp]
     s_valid = Stream(
         "vehicle_local_position validity",
-        topics.times(lp),
+        t_lp,
         np.column_stack([lp[f].astype(float) for f in flags]) if flags else np.ones(len(lp["timestamp"])),
         kind="hold",
         max_gap=np.inf,
@@ -240,17 +356,29 @@ def read_ulog_dataset(
         _Topics.columns(att, [f"q[{i}]" for i in range(4)], "vehicle_attitude", path),
         kind="quaternion",
     )
-    av_cols = [f"xyz[{i}]" for i in range(3)] + [f"xyz_derivative[{i}]" for i in range(3)]
-    s_av = Stream(
-        "vehicle_angular_velocity",
-        topics.times(av),
-        _Topics.columns(av, av_cols, "vehicle_angular_velocity", path),
-    )
-    s_rotor = _actuator_throttle_stream(topics, notes) if rotor is not None else _esc_rotor_stream(topics)
-    if rotor is None:
-        notes.append(f"rotor speeds from esc_status rpm at {s_rotor.rate_hz:.1f} Hz, interpolated")
+    s_rate, s_dw = _rate_stream(topics, notes)
+    if s_dw is None:
+        s_dw = Stream(f"{s_rate.name} derivative", s_rate.t, stream_derivative(s_rate.t, s_rate.values))
 
-    streams = [s_lp, s_att, s_av, s_rotor]
+    use_esc = rotor is None and _esc_is_real(topics)
+    s_thr = None
+    try:
+        s_thr = _actuator_throttle_stream(topics, [] if use_esc else notes)
+    except UserError:
+        if not use_esc:
+            raise
+    if use_esc:
+        s_rotor = _esc_rotor_stream(topics)
+        notes.append(f"rotor speeds from esc_status rpm at {s_rotor.rate_hz:.1f} Hz, interpolated")
+    else:
+        s_rotor = s_thr
+    if rotor is None and not use_esc:
+        notes.append(
+            "no rotor speeds in the log (no esc_status rpm): u from the motor commands through a thrust "
+            "curve (identification.motor_model; fitted when the model is identified)"
+        )
+
+    streams = [s_lp, s_acc, s_att, s_rate, s_dw, s_rotor]
     s_sens = None
     if targets == "sensors":
         s_sens = _sensor_target_stream(
@@ -258,7 +386,12 @@ def read_ulog_dataset(
         )
         streams.append(s_sens)
 
-    timeline = uniform_timeline(streams, rate_hz) if rate_hz else s_av.t
+    if rate_hz:
+        timeline = uniform_timeline(streams, rate_hz)
+    elif topics.has("vehicle_angular_velocity"):
+        timeline = s_rate.t
+    else:
+        timeline = uniform_timeline(streams, DEFAULT_RATE_HZ)
     filt = RowFilter(len(timeline))
     values = {}
     for s in [*streams, s_valid]:
@@ -266,31 +399,41 @@ def read_ulog_dataset(
         values[s.name] = v
         filt.drop(f"gap in {s.name}", ~ok)
     filt.drop("vehicle_local_position not valid", ~(values[s_valid.name] > 0.5).all(axis=1))
-    if topics.has("vehicle_land_detected"):
-        ld = topics.get("vehicle_land_detected", "ground contact")
-        s_land = Stream(
-            "vehicle_land_detected", topics.times(ld), ld["landed"].astype(float), kind="hold", max_gap=np.inf
-        )
-        landed, ok = s_land.resample(timeline)
-        filt.drop("landed (vehicle_land_detected)", (landed[:, 0] > 0.5) | ~ok)
-    else:
-        notes.append("no vehicle_land_detected: rows on the ground are not removed")
+    aux = {}
+    for name, stream in _aux_streams(topics).items():
+        v, ok = stream.resample(timeline)
+        aux[name] = np.where(ok, v[:, 0], np.nan)
+    if s_thr is not None:
+        v, ok = s_thr.resample(timeline)
+        aux["throttle"] = np.where(ok[:, None], v, np.nan)
 
-    lpv, avv = values[s_lp.name], values[s_av.name]
     euler = euler_from_quaternions(values[s_att.name])
-    xi = np.concatenate((lpv[:, :6], euler, avv[:, :3]), axis=1)
+    xi = np.concatenate((values[s_lp.name], euler, values[s_rate.name]), axis=1)
     if rotor is not None:
         thr = values[s_rotor.name]
         u, settled = rotor.speeds(timeline, thr)
         filt.drop("motor lag settling after the start or a gap", ~settled & np.isfinite(thr).all(axis=1))
         notes.append(f"motor curve: {rotor.description}")
-    else:
+    elif use_esc:
         u = values[s_rotor.name]
+    else:
+        u = ThrustCurve().speeds(values[s_rotor.name], None)
     if targets == "truth":
-        tgt = np.concatenate((lpv[:, 6:9], avv[:, 3:6]), axis=1)
+        tgt = np.concatenate((values[s_acc.name], values[s_dw.name]), axis=1)
     else:
         tgt = values[s_sens.name]
-    return make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes)
+    try:
+        ds = make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
+    except UserError as exc:
+        if "armed" in aux and not (aux["armed"] > 0.5).any():
+            raise UserError(
+                f"{exc.args[0]}; the vehicle was never armed in this log (vehicle_status.arming_state), "
+                "so it holds no flight",
+                hint="use a log of a flight: armed, airborne, with a valid local position",
+            ) from None
+        raise
+    ds.u_from_throttle = rotor is None and not use_esc
+    return ds
 
 
 def _sensor_target_stream(

@@ -1,0 +1,140 @@
+"""Physical plausibility checks of a model, printed with it: can an engineer trust these equations?
+
+At the hover point (level, at rest, every rotor at the log's hover speed u_h: the median rotor speed of
+the rows, or the vehicle's hover speed when a vehicle file is given):
+- gravity: z'' with the rotors stopped is +g (NED, down) within 15%.
+- hover: z'' at u_h is near 0 (the log hovered there), within 15% of g; with a vehicle file, the mass
+  that the model's thrust implies (Ct * sum u_h^2 / thrust acceleration, kg) against the file's.
+- control signs: more thrust (sum u_i^2) accelerates up (z'' < 0), the roll, pitch and yaw combinations
+  f2, f3, f4 (docs/design.md) give positive wx', wy', wz'; a target that does not respond is flagged too.
+- self-feedback: d(wx')/d(wx), d(wy')/d(wy), d(wz')/d(wz) and d(x'')/d(vx), d(y'')/d(vy), d(z'')/d(vz),
+  averaged over the data's rows, must not be positive beyond max_self_feedback (1/s): a positive one is
+  anti-damping (the state feeds its own growth), which no rigid body with rotors and drag has.
+Every check works on whatever expressions the engine found (numerically, by finite differences).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from identification.table import STATE_NAMES
+from identification.targets import STANDARD_GRAVITY
+
+# motor combinations of docs/design.md: the rotor signs of f1..f4
+COMBINATION_SIGNS = {
+    "f1": np.array([1.0, 1.0, 1.0, 1.0]),
+    "f2": np.array([-1.0, 1.0, 1.0, -1.0]),
+    "f3": np.array([1.0, -1.0, 1.0, -1.0]),
+    "f4": np.array([1.0, 1.0, -1.0, -1.0]),
+}
+# target -> (combination, expected sign of its response, what it is)
+CONTROL = {
+    "az": ("f1", -1.0, "more thrust accelerates up (z'' < 0, NED)"),
+    "dwx": ("f2", 1.0, "the roll combination f2 rolls right (wx' > 0)"),
+    "dwy": ("f3", 1.0, "the pitch combination f3 pitches up (wy' > 0)"),
+    "dwz": ("f4", 1.0, "the yaw combination f4 yaws right (wz' > 0)"),
+}
+SELF = {"ax": 3, "ay": 4, "az": 5, "dwx": 9, "dwy": 10, "dwz": 11}  # target -> its own state in xi
+
+
+@dataclass(frozen=True)
+class Check:
+    """One plausibility check: its name, whether it passed, and a line saying what was measured."""
+
+    name: str
+    ok: bool
+    text: str
+
+    def line(self) -> str:
+        """'ok' or 'FLAG' then the text."""
+        return f"{'ok  ' if self.ok else 'FLAG'} {self.name}: {self.text}"
+
+
+def _eval(model, target: str, xi: np.ndarray, u: np.ndarray) -> np.ndarray:
+    j = model.target_names.index(target)
+    return np.asarray(model.predict(np.atleast_2d(xi), np.atleast_2d(u))[:, j], dtype=float)
+
+
+def plausibility_checks(
+    model,
+    xi: np.ndarray,
+    u: np.ndarray,
+    vehicle=None,
+    gravity: float = STANDARD_GRAVITY,
+    max_self_feedback: float = 0.5,
+) -> list[Check]:
+    """The checks of a fitted model (anything with predict(xi, u) and target_names, e.g. QuadrotorModel)
+    on data rows xi (N,12), u (N,4) rad/s; vehicle: a bridge.vehicle.VehicleConfig or None."""
+    checks: list[Check] = []
+    names = tuple(model.target_names)
+    u_h = float(vehicle.hover_speed) if vehicle is not None else float(np.median(u))
+    level = np.zeros(12)
+    if "az" in names:
+        g_model = float(_eval(model, "az", level, np.zeros(4))[0])
+        ok = abs(g_model - gravity) <= 0.15 * gravity
+        checks.append(
+            Check(
+                "gravity", ok, f"z'' with the rotors stopped {g_model:+.3g} m/s^2 (expected +{gravity:.3g})"
+            )
+        )
+        hover = float(_eval(model, "az", level, np.full(4, u_h))[0])
+        ok = abs(hover) <= 0.15 * gravity
+        text = (
+            f"z'' at the hover speed {u_h:.4g} rad/s is {hover:+.3g} m/s^2 "
+            f"(expected 0 within {0.15 * gravity:.2g})"
+        )
+        thrust_acc = g_model - hover  # m/s^2 of thrust at u_h
+        if vehicle is not None and thrust_acc > 0:
+            mass = vehicle.thrust_coefficient * 4 * u_h**2 / thrust_acc
+            ok = ok and abs(mass - vehicle.mass) <= 0.2 * vehicle.mass
+            text += f"; implied mass {mass:.3g} kg (vehicle file {vehicle.mass:.3g} kg)"
+        elif vehicle is None:
+            ok = ok and abs(thrust_acc / gravity - 1.0) <= 0.2
+            text += f"; thrust/weight at u_h {thrust_acc / gravity:.2f} (the log hovers: expected 1 +- 0.2)"
+        checks.append(Check("hover thrust", ok, text))
+    delta = max(1.0, 0.02 * u_h)
+    for target, (combo, sign, what) in CONTROL.items():
+        if target not in names:
+            continue
+        s = COMBINATION_SIGNS[combo]
+        up = _eval(model, target, level, u_h + delta * s)[0]
+        down = _eval(model, target, level, u_h - delta * s)[0]
+        slope = float(up - down) / (2 * delta)  # target unit per rad/s of the combination's command
+        scale = max(abs(float(_eval(model, target, level, np.full(4, u_h))[0])), 1e-3)
+        if abs(slope) * u_h * 0.1 < 1e-6 * scale or slope == 0:
+            checks.append(Check(f"control {target}", False, f"{target} does not respond to {combo}: {what}"))
+        else:
+            ok = np.sign(slope) == sign
+            checks.append(
+                Check(f"control {target}", ok, f"d{target}/d({combo} command) {slope:+.3g}: {what}")
+            )
+    rows = np.arange(len(xi))
+    if len(rows) > 400:
+        rows = np.linspace(0, len(xi) - 1, 400).astype(int)
+    for target, k in SELF.items():
+        if target not in names:
+            continue
+        x = np.asarray(xi, dtype=float)[rows]
+        step = max(1e-3, 0.05 * float(np.std(x[:, k]) or 1.0))
+        hi, lo = x.copy(), x.copy()
+        hi[:, k] += step
+        lo[:, k] -= step
+        ur = np.asarray(u, dtype=float)[rows]
+        d = (_eval(model, target, hi, ur) - _eval(model, target, lo, ur)) / (2 * step)
+        mean = float(np.nanmean(d))
+        name = STATE_NAMES[k]
+        ok = mean <= max_self_feedback
+        label = "anti-damping" if not ok else "damping" if mean < 0 else "no feedback"
+        checks.append(
+            Check(f"self-feedback {target}", ok, f"d{target}/d{name} {mean:+.3g} 1/s on average ({label})")
+        )
+    return checks
+
+
+def checks_text(checks: list[Check]) -> str:
+    """The checks as lines, flags first counted."""
+    flags = sum(not c.ok for c in checks)
+    head = f"plausibility: {flags} flag(s) in {len(checks)} checks"
+    return "\n".join([head, *(f"  {c.line()}" for c in checks)])
