@@ -146,14 +146,17 @@ def test_realtime_mode_steps_at_the_wall_clock_pace(start_sitl):
     assert "FAILSAFE" not in sitl.output
 
 
-def test_fast_hil_frames_equal_the_bridge_encoders():
+@pytest.mark.parametrize("name,wind", [("fang-chen-buaa", None), ("fang-chen-aero", (5.0, -2.0, 0.5))])
+def test_fast_hil_frames_equal_the_bridge_encoders(name, wind):
     """sitl.hil packs frames itself for speed: they must decode to what bridge.messages would send."""
+    from bridge.airframe import wind_config
     from bridge.link import UdpLink
     from sitl.dynamics import Quadrotor
     from sitl.hil import HilEncoder, reference_messages
     from sitl.sensors import SensorModel
 
-    vehicle = load_vehicle("fang-chen-buaa").with_overrides(ground="none", initial_position=(10, -20, -30.0))
+    flow = None if wind is None else wind_config("test", wind, "light")  # with wind: WIND_COV in each step
+    vehicle = load_vehicle(name).with_overrides(ground="none", initial_position=(10, -20, -30.0), wind=flow)
     quad = Quadrotor(vehicle)
     sensors = SensorModel(vehicle.sensors, vehicle.home, 5)
     rng = np.random.default_rng(2)
@@ -172,6 +175,7 @@ def test_fast_hil_frames_equal_the_bridge_encoders():
             reference = link.pack(reference_messages(quad, frame, vehicle.home))
             slow = [m for m, _ in parse_datagram(b"".join(reference), stats)]
             assert [m.to_dict() for m in fast] == [m.to_dict() for m in slow]
+            assert any(m.get_type() == "WIND_COV" for m in fast) == (wind is not None)
         assert stats.dropped == 0
 
 
