@@ -9,6 +9,8 @@ from pathlib import Path
 
 from bridge.errors import UserError
 
+EXIT_BELOW_THRESHOLD = 4  # quadsr identify --strict: a target's validation R^2 is below the threshold
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the identify, validate and model-from-vehicle subcommands."""
@@ -20,8 +22,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Read one or more flight logs (.tlog, PX4 .ulg, ArduPilot .bin), learn x'', y'', z'' (NED) and "
             "wx', wy', wz' (FRD) as expressions of the 12 states and 4 rotor speeds, and write model.yaml. "
-            "Each target gets a Pareto front (complexity against error) from the engine; the final pick is "
-            "made on the held-out last part of each flight."
+            "Each target gets a Pareto front (complexity against error) from the engine fitted on the 'fit' "
+            "rows; the final pick uses the 'pick' rows and the reported validation the 'validate' rows, used "
+            "for neither: whole flights (--pick-log, --validate-log) or time blocks of each flight "
+            "(fit | gap | pick | gap | validate). model.yaml records which file, time range and sha256 did "
+            "what, the terms this flight cannot identify (collinear regressors) and the targets whose "
+            "validation R^2 is below --r2-threshold. Exit codes: 0 done, 2 bad input, "
+            f"{EXIT_BELOW_THRESHOLD} with --strict when a target is below the threshold (model.yaml is still "
+            "written)."
         ),
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="flight logs (.tlog, .ulg, .bin)")
@@ -33,7 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="default: sparse regression, then pyoperon where the library does not explain a target",
     )
     p.add_argument(
-        "--budget", type=float, default=60.0, metavar="SECONDS", help="time budget per target (60)"
+        "--budget",
+        type=int,
+        default=60,
+        metavar="GENERATIONS",
+        help="genetic-programming generations per target (60; PySR: iterations): an iteration budget, "
+        "so a seed gives the same model on any machine",
     )
     p.add_argument("--targets", default=None, metavar="ax,ay,...", help="targets to learn (default: all six)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="seed (default 0)")
@@ -42,7 +55,48 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=0.2,
         metavar="FRACTION",
-        help="last fraction of each flight held out for the final pick and validation metrics (0.2)",
+        help="fraction of each flight's time used to pick among the candidates (0.2), unless --pick-log",
+    )
+    p.add_argument(
+        "--validate-fraction",
+        type=float,
+        default=0.2,
+        metavar="FRACTION",
+        help="fraction of each flight's time used only for validation (0.2), unless --validate-log",
+    )
+    p.add_argument(
+        "--gap",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="time left out between the fit, pick and validate blocks of a flight (default and minimum: "
+        "the longest differentiator window, 0.4 s)",
+    )
+    p.add_argument(
+        "--pick-log",
+        action="append",
+        default=None,
+        metavar="LOG",
+        help="a different flight to pick the model on (repeatable); then no pick block is cut from LOGs",
+    )
+    p.add_argument(
+        "--validate-log",
+        action="append",
+        default=None,
+        metavar="LOG",
+        help="a different flight to validate on (repeatable); then no validate block is cut from LOGs",
+    )
+    p.add_argument(
+        "--r2-threshold",
+        type=float,
+        default=0.9,
+        metavar="R2",
+        help="a target whose validation R^2 is below this is flagged in model.yaml and here (0.9)",
+    )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help=f"exit {EXIT_BELOW_THRESHOLD} when any target's validation R^2 is below --r2-threshold",
     )
     p.add_argument(
         "--loss",
@@ -138,16 +192,26 @@ def _load(logs: list[str], targets_from: str, motor_curve: str | None):
 
 def run_identify(args: argparse.Namespace) -> int:
     """Identify the model and write it."""
+    from identification.data_roles import DEFAULT_GAP_S
     from identification.engine import load_engine_settings
     from identification.identify import identify, parse_targets
     from identification.model_file import save_model
     from identification.validate import table_markdown
 
     targets = parse_targets(args.targets)
-    if not (math.isfinite(args.budget) and args.budget > 0):
-        raise UserError(f"--budget must be a positive number of seconds, got {args.budget}")
-    if not (0.0 < args.holdout < 1.0):
-        raise UserError(f"--holdout must be a fraction between 0 and 1, got {args.holdout}")
+    if args.budget < 1:
+        raise UserError(f"--budget must be a whole number of generations >= 1, got {args.budget}")
+    for flag, value in (("--holdout", args.holdout), ("--validate-fraction", args.validate_fraction)):
+        if not (0.0 < value < 1.0):
+            raise UserError(f"{flag} must be a fraction between 0 and 1, got {value}")
+    gap = DEFAULT_GAP_S if args.gap is None else args.gap
+    if not (math.isfinite(gap) and gap >= DEFAULT_GAP_S):
+        raise UserError(
+            f"--gap must be at least {DEFAULT_GAP_S:g} s (the longest differentiator window), got {args.gap}",
+            hint="blocks closer than one window share samples through the targets' filters",
+        )
+    if not (math.isfinite(args.r2_threshold) and args.r2_threshold <= 1.0):
+        raise UserError(f"--r2-threshold must be a number <= 1, got {args.r2_threshold}")
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     out = _output_path(args.out, "-o")
@@ -163,30 +227,48 @@ def run_identify(args: argparse.Namespace) -> int:
 
         vehicle = vehicle_provenance(load_vehicle(args.vehicle))
     dataset = _load(args.logs, args.targets_from, args.motor_curve)
+    pick = _load(args.pick_log, args.targets_from, args.motor_curve) if args.pick_log else None
+    check = _load(args.validate_log, args.targets_from, args.motor_curve) if args.validate_log else None
     print(
-        f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget:g} s "
-        f"per target, seed {args.seed}",
+        f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget} "
+        f"generations per target, seed {args.seed}",
         file=sys.stderr,
     )
     model = identify(
         dataset,
         engine=args.engine,
         targets=targets,
-        budget_s=args.budget,
+        budget=args.budget,
         seed=args.seed,
-        holdout=args.holdout,
+        pick=pick,
+        validate=check,
+        pick_fraction=args.holdout,
+        validate_fraction=args.validate_fraction,
+        gap_s=gap,
+        r2_threshold=args.r2_threshold,
         loss=args.loss,
         settings=settings,
         vehicle=vehicle,
         progress=not args.no_progress,
     )
     save_model(model, out)
-    metrics = {n: t.metrics.get("validation", t.metrics.get("train")) for n, t in model.targets.items()}
-    print(f"held-out metrics ({args.holdout:.0%} of each flight):")
+    metrics = {n: t.metrics["validation"] for n, t in model.targets.items()}
+    roles = model.extra["data"]
+    where = ", ".join(
+        f"{b['file']} {b['t_start_s']:.2f}..{b['t_end_s']:.2f} s" for b in roles["validate"]
+    )
+    print(f"validation (rows used neither to fit nor to pick: {where}):")
     print(table_markdown(metrics), end="")
     for name, t in model.targets.items():
         print(f"{name} = {t.expression}")
     print(f"wrote {out}")
+    below = model.extra["checks"]["below_threshold"]
+    if below:
+        names = ", ".join(f"{n} (R^2 {r:.4f})" for n, r in below.items())
+        print(f"below the validation R^2 threshold {args.r2_threshold:g}: {names}")
+        if args.strict:
+            print(f"--strict: exit {EXIT_BELOW_THRESHOLD}", file=sys.stderr)
+            return EXIT_BELOW_THRESHOLD
     return 0
 
 
