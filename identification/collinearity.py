@@ -10,12 +10,17 @@ arbitrary. Two measures on the columns (each standardised to zero mean and unit 
   inflated by the other columns. VIF above `vif_limit` (default 10, the usual rule of thumb) marks the term
   as not identifiable from this flight: its coefficient trades off against the columns it is tied to.
 A constant column has no variance; it is left out of both measures (the intercept is not a collinearity).
+
+A chosen model can also look well conditioned because the engine dropped a true term tied to one it kept
+(the roll torque f2 absorbs the rate damping wx when a rate controller makes f2 follow -wx). So each
+candidate feature not in the model is also tried beside the model's terms: when adding it would push a
+term's VIF over the limit, that term and that candidate cannot be told apart from this flight.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import sympy
@@ -45,12 +50,13 @@ _KIND = {
 
 @dataclass(frozen=True)
 class TermCollinearity:
-    """One regressor column: its VIF and the other column it is most correlated with (|r|)."""
+    """One regressor column: its VIF and the other column that weighs most in explaining it (the largest
+    standardised coefficient when it is regressed on all the others), with that coefficient."""
 
     term: str
     vif: float
     partner: str
-    correlation: float
+    weight: float
 
 
 @dataclass(frozen=True)
@@ -60,6 +66,7 @@ class Collinearity:
     condition_number: float
     terms: tuple[TermCollinearity, ...]
     vif_limit: float = VIF_LIMIT
+    confounders: tuple[TermCollinearity, ...] = ()  # a model term, with a candidate not in the model
 
     @property
     def unidentifiable(self) -> list[TermCollinearity]:
@@ -70,7 +77,7 @@ class Collinearity:
     def advice(self) -> str:
         """What excitation would separate the unidentifiable terms ('' when every term is identifiable)."""
         kinds: list[str] = []
-        for t in self.unidentifiable:
+        for t in [*self.unidentifiable, *self.confounders]:
             for name in (t.term, t.partner):
                 for sym in sorted(_symbols_in(name)):
                     k = _KIND.get(sym)
@@ -88,9 +95,13 @@ class Collinearity:
                     "term": t.term,
                     "vif": _finite(t.vif),
                     "tied_to": t.partner,
-                    "correlation": round(t.correlation, 6),
+                    "weight": round(t.weight, 6),
                 }
                 for t in self.unidentifiable
+            ],
+            "confused_with_candidates": [
+                {"term": t.term, "candidate": t.partner, "vif_with_it": _finite(t.vif)}
+                for t in self.confounders
             ],
             "excitation": self.advice(),
         }
@@ -113,49 +124,30 @@ def column_collinearity(
 ) -> Collinearity:
     """Condition number and VIFs of the columns (N,k) named `names` (module docstring)."""
     a = np.asarray(columns, dtype=float)
-    ok = np.all(np.isfinite(a), axis=1)
-    a = a[ok]
-    std = a.std(axis=0) if len(a) else np.zeros(a.shape[1])
-    scale = np.maximum(np.abs(a).max(axis=0), 1e-300) if len(a) else np.ones(a.shape[1])
-    varying = std > 1e-12 * scale
-    idx = np.flatnonzero(varying)
-    z = (a[:, idx] - a[:, idx].mean(axis=0)) / std[idx]
-    if len(idx) == 0 or len(z) < 2:
+    a = a[np.all(np.isfinite(a), axis=1)]
+    if len(a) < 2:
         return Collinearity(1.0, (), vif_limit)
+    z, varying = _standardise(a)
+    idx = np.flatnonzero(varying)
+    if len(idx) == 0:
+        return Collinearity(1.0, (), vif_limit)
+    z = z[:, idx]
     sv = np.linalg.svd(z, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > sv[0] * 1e-15 else float("inf")
     corr = (z.T @ z) / len(z)
-    if len(idx) == 1:
-        vifs = np.ones(1)
-    else:
-        eig_min = float(np.linalg.eigvalsh(corr)[0])
-        vifs = np.diag(np.linalg.inv(corr)) if eig_min > 1e-13 else _vif_by_regression(z)
     terms = []
     for k, j in enumerate(idx):
-        r = np.abs(corr[k]).copy()
-        r[k] = -1.0
-        p = int(np.argmax(r)) if len(idx) > 1 else k
-        terms.append(
-            TermCollinearity(
-                names[j],
-                float(vifs[k]) if vifs[k] > 0 else float("inf"),
-                names[idx[p]] if p != k else "",
-                float(max(r[p], 0.0)) if p != k else 0.0,
-            )
-        )
+        if len(idx) == 1:
+            terms.append(TermCollinearity(names[j], 1.0, "", 0.0))
+            continue
+        others = np.delete(np.arange(len(idx)), k)
+        # regression of column k on the others, from the correlation matrix (normal equations)
+        coef, *_ = np.linalg.lstsq(corr[np.ix_(others, others)], corr[others, k], rcond=1e-13)
+        unexplained = 1.0 - float(coef @ corr[others, k])
+        vif = 1.0 / unexplained if unexplained > 1e-12 else float("inf")
+        p = int(np.argmax(np.abs(coef)))
+        terms.append(TermCollinearity(names[j], max(vif, 1.0), names[idx[others[p]]], float(coef[p])))
     return Collinearity(cond, tuple(terms), vif_limit)
-
-
-def _vif_by_regression(z: np.ndarray) -> np.ndarray:
-    """VIFs of standardised columns z (N,k) one least-squares fit at a time (inf where R^2 is 1)."""
-    out = np.empty(z.shape[1])
-    for j in range(z.shape[1]):
-        others = np.delete(z, j, axis=1)
-        coef, *_ = np.linalg.lstsq(others, z[:, j], rcond=None)
-        resid = z[:, j] - others @ coef
-        one_minus_r2 = float(resid @ resid) / float(z[:, j] @ z[:, j])
-        out[j] = 1.0 / one_minus_r2 if one_minus_r2 > 1e-15 else float("inf")
-    return out
 
 
 def expression_columns(expr: sympy.Expr, X: np.ndarray) -> tuple[np.ndarray, list[str]]:
@@ -175,23 +167,74 @@ def expression_columns(expr: sympy.Expr, X: np.ndarray) -> tuple[np.ndarray, lis
     return cols, [expression_to_string(s) for s in shapes]
 
 
-def model_collinearity(expr: sympy.Expr, X: np.ndarray, vif_limit: float = VIF_LIMIT) -> Collinearity:
-    """Collinearity of a chosen expression's terms on the fit rows X (N,16: the 12 states then u1..u4)."""
+def model_collinearity(
+    expr: sympy.Expr,
+    X: np.ndarray,
+    candidates: tuple[np.ndarray, Sequence[str]] | None = None,
+    vif_limit: float = VIF_LIMIT,
+) -> Collinearity:
+    """Collinearity of a chosen expression's terms on the fit rows X (N,16: the 12 states then u1..u4),
+    and, given candidate feature columns (N,m) with names, the candidates confused with its terms."""
     cols, names = expression_columns(expr, X)
-    return column_collinearity(cols, names, vif_limit)
+    own = column_collinearity(cols, names, vif_limit)
+    if candidates is None or not names:
+        return own
+    return replace(own, confounders=_confounders(cols, names, *candidates, vif_limit))
+
+
+def _standardise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(columns scaled to zero mean and unit variance, mask of the columns that vary)."""
+    std = a.std(axis=0)
+    varying = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    z = np.zeros_like(a)
+    z[:, varying] = (a[:, varying] - a[:, varying].mean(axis=0)) / std[varying]
+    return z, varying
+
+
+def _confounders(
+    cols: np.ndarray, names: Sequence[str], cand: np.ndarray, cand_names: Sequence[str], vif_limit: float
+) -> tuple[TermCollinearity, ...]:
+    """Per model term, the candidate (not in the model) whose addition gives it the largest VIF, when
+    that VIF exceeds the limit; a candidate equal to a model term is the term itself and is skipped."""
+    k = cols.shape[1]
+    both = np.hstack([cols, np.asarray(cand, dtype=float)])
+    both = both[np.all(np.isfinite(both), axis=1)]
+    if len(both) < 2:
+        return ()
+    z, varying = _standardise(both)
+    corr = (z.T @ z) / len(z)
+    own = [j for j in range(k) if varying[j]]
+    worst: dict[int, TermCollinearity] = {}
+    for c in range(k, both.shape[1]):
+        if not varying[c] or any(abs(corr[c, j]) > 1 - 1e-12 for j in own):
+            continue  # constant, or the very same column as a model term
+        group = [*own, c]
+        for j in own:
+            others = [g for g in group if g != j]
+            coef, *_ = np.linalg.lstsq(corr[np.ix_(others, others)], corr[others, j], rcond=1e-13)
+            unexplained = 1.0 - float(coef @ corr[others, j])
+            vif = 1.0 / unexplained if unexplained > 1e-12 else float("inf")
+            if vif > vif_limit and (j not in worst or vif > worst[j].vif):
+                worst[j] = TermCollinearity(names[j], vif, cand_names[c - k], float(coef[-1]))
+    return tuple(worst[j] for j in sorted(worst))
 
 
 def describe(target: str, c: Collinearity) -> list[str]:
     """Terminal lines: which terms of a target are not identifiable from this flight and what would help."""
     bad = c.unidentifiable
-    if not bad:
-        return []
-    parts = [
-        f"{t.term} (VIF {t.vif:.3g}" + (f", |r| {t.correlation:.3f} with {t.partner})" if t.partner else ")")
-        for t in bad
-    ]
-    return [
-        f"warning: {target}: {len(bad)} term(s) not identifiable from this flight (condition number "
-        f"{c.condition_number:.3g}): " + "; ".join(parts),
-        f"  to separate them: {c.advice()}",
-    ]
+    lines = []
+    if bad:
+        parts = [f"{t.term} (VIF {t.vif:.3g}, tied most to {t.partner})" for t in bad]
+        lines.append(
+            f"warning: {target}: {len(bad)} term(s) not identifiable from this flight (condition number "
+            f"{c.condition_number:.3g}): " + "; ".join(parts)
+        )
+    if c.confounders:
+        parts = [f"{t.term} with {t.partner} (VIF {t.vif:.3g})" for t in c.confounders]
+        lines.append(
+            f"warning: {target}: terms that cannot be told apart from candidates left out of the model on "
+            "this flight (the coefficient may hold both): " + "; ".join(parts)
+        )
+    if lines:
+        lines.append(f"  to separate them: {c.advice()}")
+    return lines

@@ -134,6 +134,9 @@ def identify(
     below: dict[str, float] = {}
     warnings: list[str] = []
     total_start = time.perf_counter()
+    library = build_library(settings.sparse.groups)
+    library_names = [f.name for f in library]
+    library_columns = feature_matrix(library, X)
     for name in targets:
         j = TARGET_NAMES.index(name)
         y, yp, yv = Y[:, j], Yp[:, j], Yv[:, j]
@@ -164,7 +167,7 @@ def identify(
         wall[name] = timings
         if getattr(eng, "gate_r2", None) is not None:
             gates[name] = float(eng.gate_r2)
-        coll = model_collinearity(chosen.expression, X[ok])
+        coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         identifiability[name] = coll.as_dict()
         warnings += describe(name, coll)
         targets_done[name] = TargetModel(
@@ -184,8 +187,7 @@ def identify(
         bar.close(f"R2={r2v:.6f} complexity {chosen.complexity} ({chosen.engine})")
         if log:
             log(f"{name}: R2 {r2v:.6f}, complexity {chosen.complexity}, {chosen.engine}, {elapsed:.1f} s")
-    library = build_library(settings.sparse.groups)
-    cand = column_collinearity(feature_matrix(library, X), [f.name for f in library])
+    cand = column_collinearity(library_columns, library_names)
     if cand.unidentifiable:
         worst = ", ".join(f"{t.term} ~ {t.partner}" for t in cand.unidentifiable[:3])
         warnings.append(
