@@ -17,7 +17,13 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
-from identification.collinearity import VIF_LIMIT, column_collinearity, describe, model_collinearity
+from identification.collinearity import (
+    CONFOUNDER_VIF_LIMIT,
+    VIF_LIMIT,
+    column_collinearity,
+    describe,
+    model_collinearity,
+)
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
@@ -229,6 +235,7 @@ def identify(
             "validation_r2_threshold": float(r2_threshold),
             "below_threshold": below,
             "vif_limit": VIF_LIMIT,
+            "confounder_vif_limit": CONFOUNDER_VIF_LIMIT,
         },
         "identifiability": {
             "targets": identifiability,

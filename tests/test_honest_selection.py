@@ -125,7 +125,7 @@ def test_a_confounded_flight_names_the_terms_it_cannot_separate_and_the_excitati
     info = load_model(save_model(model, tmp_path / "m.yaml")).extra["identifiability"]["targets"]["dwx"]
     pairs = {(c["term"], c["candidate"]) for c in info["confused_with_candidates"]}
     assert ("u2**2 + u3**2 - u1**2 - u4**2", "wx") in pairs, info
-    assert all(c["vif_with_it"] == "inf" or c["vif_with_it"] > 10 for c in info["confused_with_candidates"])
+    assert all(c["vif_with_it"] == "inf" or c["vif_with_it"] > 100 for c in info["confused_with_candidates"])
     assert "cannot be told apart" in err and "with wx" in err
     assert "excite each motor independently" in info["excitation"] and "excite each motor" in err
 
