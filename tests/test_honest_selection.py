@@ -180,3 +180,9 @@ def test_identify_strict_exits_4_when_a_target_is_below_the_threshold(tmp_path, 
 def test_identify_bad_selection_flags_are_clear_errors(tmp_path, capsys, flags, expect):
     code = main(["identify", str(ULOG), "-o", str(tmp_path / "m.yaml"), *flags])
     assert code == 2 and expect in capsys.readouterr().err
+
+
+def test_identify_refuses_to_validate_on_the_flight_it_fits(tmp_path, capsys):
+    code = main(["identify", str(ULOG), "-o", str(tmp_path / "m.yaml"), "--validate-log", str(ULOG)])
+    assert code == 2 and "is given both to fit and to validate" in capsys.readouterr().err
+    assert not (tmp_path / "m.yaml").exists()
