@@ -9,6 +9,8 @@ from pathlib import Path
 
 from bridge.errors import UserError
 
+EXIT_BELOW_THRESHOLD = 4  # quadsr identify --strict: a target's validation R^2 is below the threshold
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the identify, validate and model-from-vehicle subcommands."""
@@ -20,8 +22,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Read one or more flight logs (.tlog, PX4 .ulg, ArduPilot .bin), learn x'', y'', z'' (NED) and "
             "wx', wy', wz' (FRD) as expressions of the 12 states and 4 rotor speeds, and write model.yaml. "
-            "Each target gets a Pareto front (complexity against error) from the engine; the final pick is "
-            "made on the held-out last part of each flight."
+            "Each target gets a Pareto front (complexity against error) from the engine fitted on the 'fit' "
+            "rows; the final pick uses the 'pick' rows and the reported validation the 'validate' rows, used "
+            "for neither: whole flights (--pick-log, --validate-log) or time blocks of each flight "
+            "(fit | gap | pick | gap | validate). model.yaml records which file, time range and sha256 did "
+            "what, the terms this flight cannot identify (collinear regressors) and the targets whose "
+            "validation R^2 is below --r2-threshold. Exit codes: 0 done, 2 bad input, "
+            f"{EXIT_BELOW_THRESHOLD} with --strict when a target is below the threshold (model.yaml is still "
+            "written)."
         ),
     )
     p.add_argument("logs", nargs="+", metavar="LOG", help="flight logs (.tlog, .ulg, .bin)")
@@ -33,7 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="default: sparse regression, then pyoperon where the library does not explain a target",
     )
     p.add_argument(
-        "--budget", type=float, default=60.0, metavar="SECONDS", help="time budget per target (60)"
+        "--budget",
+        type=int,
+        default=60,
+        metavar="GENERATIONS",
+        help="genetic-programming generations per target (60; PySR: iterations): an iteration budget, "
+        "so a seed gives the same model on any machine",
     )
     p.add_argument("--targets", default=None, metavar="ax,ay,...", help="targets to learn (default: all six)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="seed (default 0)")
@@ -42,7 +55,48 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=0.2,
         metavar="FRACTION",
-        help="last fraction of each flight held out for the final pick and validation metrics (0.2)",
+        help="fraction of each flight's time used to pick among the candidates (0.2), unless --pick-log",
+    )
+    p.add_argument(
+        "--validate-fraction",
+        type=float,
+        default=0.2,
+        metavar="FRACTION",
+        help="fraction of each flight's time used only for validation (0.2), unless --validate-log",
+    )
+    p.add_argument(
+        "--gap",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="time left out between the fit, pick and validate blocks of a flight (default and minimum: "
+        "the longest differentiator window, 0.4 s)",
+    )
+    p.add_argument(
+        "--pick-log",
+        action="append",
+        default=None,
+        metavar="LOG",
+        help="a different flight to pick the model on (repeatable); then no pick block is cut from LOGs",
+    )
+    p.add_argument(
+        "--validate-log",
+        action="append",
+        default=None,
+        metavar="LOG",
+        help="a different flight to validate on (repeatable); then no validate block is cut from LOGs",
+    )
+    p.add_argument(
+        "--r2-threshold",
+        type=float,
+        default=0.9,
+        metavar="R2",
+        help="a target whose validation R^2 is below this is flagged in model.yaml and here (0.9)",
+    )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help=f"exit {EXIT_BELOW_THRESHOLD} when any target's validation R^2 is below --r2-threshold",
     )
     p.add_argument(
         "--loss",
@@ -174,8 +228,8 @@ def run_fleet(args: argparse.Namespace) -> int:
     """quadsr identify --fleet: one identification per log on a Dask cluster; the fleet tables."""
     from identification.fleet import FleetSettings, expand_logs, identify_fleet
 
-    if not (math.isfinite(args.budget) and args.budget > 0):
-        raise UserError(f"--budget must be a positive number of seconds, got {args.budget}")
+    if args.budget < 1:
+        raise UserError(f"--budget must be a positive number of generations, got {args.budget}")
     if args.workers < 1:
         raise UserError(f"--workers must be >= 1, got {args.workers}")
     out = Path(args.out)
@@ -194,16 +248,26 @@ def run_identify(args: argparse.Namespace) -> int:
     """Identify the model and write it (or, with --fleet, one model per log and the fleet tables)."""
     if args.fleet:
         return run_fleet(args)
+    from identification.data_roles import DEFAULT_GAP_S, assign_roles
     from identification.engine import load_engine_settings
     from identification.identify import identify, parse_targets
     from identification.model_file import save_model
     from identification.validate import table_markdown
 
     targets = parse_targets(args.targets)
-    if not (math.isfinite(args.budget) and args.budget > 0):
-        raise UserError(f"--budget must be a positive number of seconds, got {args.budget}")
-    if not (0.0 < args.holdout < 1.0):
-        raise UserError(f"--holdout must be a fraction between 0 and 1, got {args.holdout}")
+    if args.budget < 1:
+        raise UserError(f"--budget must be a whole number of generations >= 1, got {args.budget}")
+    for flag, value in (("--holdout", args.holdout), ("--validate-fraction", args.validate_fraction)):
+        if not (0.0 < value < 1.0):
+            raise UserError(f"{flag} must be a fraction between 0 and 1, got {value}")
+    gap = DEFAULT_GAP_S if args.gap is None else args.gap
+    if not (math.isfinite(gap) and gap >= DEFAULT_GAP_S):
+        raise UserError(
+            f"--gap must be at least {DEFAULT_GAP_S:g} s (the longest differentiator window), got {args.gap}",
+            hint="blocks closer than one window share samples through the targets' filters",
+        )
+    if not (math.isfinite(args.r2_threshold) and args.r2_threshold <= 1.0):
+        raise UserError(f"--r2-threshold must be a number <= 1, got {args.r2_threshold}")
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     out = _output_path(args.out, "-o")
@@ -220,27 +284,41 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle_config = load_vehicle(args.vehicle)
         vehicle = vehicle_provenance(vehicle_config)
     dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
+    pick = _load(args.pick_log, args.targets_from, args.motor_curve, args) if args.pick_log else None
+    check = _load(args.validate_log, args.targets_from, args.motor_curve, args) if args.validate_log else None
+
+    def roles():
+        return assign_roles(dataset, pick=pick, validate=check, pick_fraction=args.holdout,
+                            validate_fraction=args.validate_fraction, gap_s=gap)
+
     motor = None
     if args.motor_curve is None:
         from identification.motor_model import apply_thrust_curve, choose_motor_model
 
-        motor, why = choose_motor_model(dataset.split(args.holdout)[0])
+        motor, why = choose_motor_model(roles().fit)  # chosen on the fit rows only
         if motor is not None:
             dataset = apply_thrust_curve(dataset, motor)
+            pick = apply_thrust_curve(pick, motor) if pick is not None else None
+            check = apply_thrust_curve(check, motor) if check is not None else None
         if why:
             print(why, file=sys.stderr)
     print(
-        f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget:g} s "
-        f"per target, seed {args.seed}",
+        f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget} "
+        f"generations per target, seed {args.seed}",
         file=sys.stderr,
     )
     model = identify(
         dataset,
         engine=args.engine,
         targets=targets,
-        budget_s=args.budget,
+        budget=args.budget,
         seed=args.seed,
-        holdout=args.holdout,
+        pick=pick,
+        validate=check,
+        pick_fraction=args.holdout,
+        validate_fraction=args.validate_fraction,
+        gap_s=gap,
+        r2_threshold=args.r2_threshold,
         loss=args.loss,
         settings=settings,
         vehicle=vehicle,
@@ -249,25 +327,36 @@ def run_identify(args: argparse.Namespace) -> int:
     if motor is not None:
         model.engine["motor_model"] = motor.as_dict()
     save_model(model, out)
-    metrics = {n: t.metrics.get("validation", t.metrics.get("train")) for n, t in model.targets.items()}
-    print(f"held-out metrics ({args.holdout:.0%} of each flight):")
+    metrics = {n: t.metrics["validation"] for n, t in model.targets.items()}
+    roles = model.extra["data"]
+    where = ", ".join(
+        f"{b['file']} {b['t_start_s']:.2f}..{b['t_end_s']:.2f} s" for b in roles["validate"]
+    )
+    print(f"validation (rows used neither to fit nor to pick: {where}):")
     print(table_markdown(metrics), end="")
-    _print_and_report(model, motor, dataset, args, out, vehicle_config)
+    _print_and_report(model, motor, roles(), args, out, vehicle_config)
     print(f"wrote {out}")
+    below = model.extra["checks"]["below_threshold"]
+    if below:
+        names = ", ".join(f"{n} (R^2 {r:.4f})" for n, r in below.items())
+        print(f"below the validation R^2 threshold {args.r2_threshold:g}: {names}")
+        if args.strict:
+            print(f"--strict: exit {EXIT_BELOW_THRESHOLD}", file=sys.stderr)
+            return EXIT_BELOW_THRESHOLD
     return 0
 
 
-def _print_and_report(model, motor, dataset, args: argparse.Namespace, out: Path, vehicle) -> None:
-    """Print the grouped equations and the plausibility checks; write the model report."""
+def _print_and_report(model, motor, roles, args: argparse.Namespace, out: Path, vehicle) -> None:
+    """Print the grouped equations and the plausibility checks; write the model report (validation rows)."""
     from identification.model_report import equations_block, model_flags, write_model_report
     from identification.plausibility import checks_text, plausibility_checks
     from identification.quad_model import QuadrotorModel
 
     fitted = QuadrotorModel.from_model(model, motor)
     print(equations_block(fitted))
-    checks = plausibility_checks(fitted, dataset.xi, dataset.u, vehicle=vehicle)
+    train, hold = roles.fit, roles.validate
+    checks = plausibility_checks(fitted, train.xi, train.u, vehicle=vehicle)
     print(checks_text(checks))
-    train, hold = dataset.split(args.holdout)
     for flag in model_flags(fitted, hold):
         print(f"flag: {flag}")
     folder = Path(args.report) if args.report else out.with_name(out.stem + "_report")

@@ -1,8 +1,10 @@
 """The engine interface, the engine settings, the registry, and the combined default engine.
 
-Every engine fits one target: `fit(X (N,16) = xi then u, y (N,), target, budget_s, seed, loss, progress,
-holdout) -> list[Candidate]`. Candidates from all engines go on one Pareto front (complexity against
-error); the final pick is made on held-out data (identification.pareto).
+Every engine fits one target: `fit(X (N,16) = xi then u, y (N,), target, budget, seed, loss, progress,
+holdout) -> list[Candidate]`. budget is an iteration count (genetic-programming generations; PySR
+iterations), never seconds, so a seed gives the same candidates on any machine; the sparse regression
+always runs to completion (its work is fixed by its settings). Candidates from all engines go on one
+Pareto front (complexity against error); the final pick is made on held-out data (identification.pareto).
 
 The default engine runs the sparse regression first; where its held-out R^2 is below `gate_r2` (the
 library does not explain the target) genetic programming (pyoperon) fits the residual of the sparse
@@ -80,7 +82,7 @@ class Engine(Protocol):
         X: np.ndarray,
         y: np.ndarray,
         target: str,
-        budget_s: float,
+        budget: int,
         seed: int,
         loss: str = "absolute",
         progress: Progress | None = None,
@@ -114,8 +116,7 @@ class SparseSettings:
 class OperonSettings:
     """pyoperon's NSGA-II genetic programming (objectives r2 and length: a real Pareto front)."""
 
-    population_size: int = 500
-    generations: int = 60  # the budget that makes runs reproducible (max_time only caps it)
+    population_size: int = 500  # generations: the identify budget (an iteration count, no time cap)
     max_length: int = 40
     max_depth: int = 10
     optimizer_iterations: int = 10  # constant fitting (0 would turn it off)
@@ -128,8 +129,7 @@ class OperonSettings:
 class PysrSettings:
     """PySR (Julia) behind the same interface."""
 
-    niterations: int = 40
-    populations: int = 8
+    populations: int = 8  # iterations: the identify budget
     maxsize: int = 30
     binary_operators: tuple[str, ...] = ("+", "-", "*", "/")
     unary_operators: tuple[str, ...] = ("sin", "cos")
@@ -281,14 +281,13 @@ class DefaultEngine:
         self.settings = settings or EngineSettings()
         self.timings: dict[str, float] = {}
         self.gate_r2: float | None = None  # held-out R^2 of the sparse pick (the gate's input)
-        self.capped_by_time = False  # operon stopped by the time budget before its generation budget
 
     def fit(
         self,
         X: np.ndarray,
         y: np.ndarray,
         target: str,
-        budget_s: float,
+        budget: int,
         seed: int,
         loss: str = "absolute",
         progress: Progress | None = None,
@@ -309,7 +308,7 @@ class DefaultEngine:
             Xh, yh = holdout
         sparse = SparseEngine(self.settings.sparse)
         step = (lambda f, s: progress(0.2 * f, s)) if progress else None
-        candidates = sparse.fit(X, y, target, budget_s, seed, loss, step, (Xh, yh))
+        candidates = sparse.fit(X, y, target, budget, seed, loss, step, (Xh, yh))
         self.timings["sparse"] = time.perf_counter() - start
         attach_holdout(candidates, Xh, yh, loss)
         best = select(candidates, self.settings.selection, scale=float(np.std(yh)) if len(yh) else 1.0)
@@ -321,10 +320,9 @@ class DefaultEngine:
         op_start = time.perf_counter()
         residual = y - best.evaluate(X)
         operon = OperonEngine(self.settings.operon)
-        remaining = max(1.0, budget_s - (op_start - start))
         step = (lambda f, s: progress(0.2 + 0.8 * f, "operon " + s)) if progress else None
         residual_fits = operon.fit(
-            X, residual, target, remaining, seed, loss, step, (Xh, yh - best.evaluate(Xh))
+            X, residual, target, budget, seed, loss, step, (Xh, yh - best.evaluate(Xh))
         )
         for rc in residual_fits:
             expr = best.expression + rc.expression
@@ -339,7 +337,6 @@ class DefaultEngine:
                 )
             )
         self.timings["operon"] = time.perf_counter() - op_start
-        self.capped_by_time = operon.capped_by_time
         if progress:
             progress(1.0, "done")
         return candidates

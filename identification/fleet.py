@@ -25,12 +25,12 @@ LOG_SUFFIXES = (".tlog", ".ulg", ".bin", ".BIN", ".csv", ".parquet")
 
 @dataclass(frozen=True)
 class FleetSettings:
-    """How each log is identified: targets source, motor curve, engine, budget [s per target], seed."""
+    """How each log is identified: targets source, motor curve, engine, budget [generations/target], seed."""
 
     targets: str = "truth"
     motor_curve: str | None = None
     engine: str = "default"
-    budget_s: float = 30.0
+    budget: int = 60  # genetic-programming generations per target
     seed: int = 0
 
 
@@ -71,7 +71,7 @@ def identify_log(data: bytes, name: str, settings: FleetSettings) -> dict[str, A
             dataset = load_dataset(path, targets=settings.targets, motor_curve=settings.motor_curve)
             row.update(format=dataset.format, sha256=file_sha256(path), rows=int(len(dataset)),
                        dropped=int(dataset.dropped_rows))
-            model = identify(dataset, engine=settings.engine, budget_s=settings.budget_s, seed=settings.seed,
+            model = identify(dataset, engine=settings.engine, budget=settings.budget, seed=settings.seed,
                              progress=False)
             terms = []
             for target, tm in model.targets.items():

@@ -1,7 +1,10 @@
-"""From a dataset to a model: per target run the engine, build the Pareto front, pick on held-out data.
+"""From a dataset to a model: per target run the engine on the fit rows, build the Pareto front, pick on
+the pick rows, report validation on rows used for neither (identification.data_roles), check how well the
+flight identifies each chosen term (identification.collinearity) and flag targets below an R^2 threshold.
 
-Held-out data: the last `holdout` fraction of each flight (in time). Losses: 'absolute' (MAE, the paper's
-fitness) or 'squared' (RMSE), in the target's unit. The pick rule is identification.pareto's.
+Losses: 'absolute' (MAE, the paper's fitness) or 'squared' (RMSE), in the target's unit. The pick rule is
+identification.pareto's. The budget is an iteration count (genetic-programming generations per target), so
+the same data, settings and seed give the same model on any machine.
 """
 
 from __future__ import annotations
@@ -14,10 +17,23 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from identification.collinearity import (
+    CONFOUNDER_VIF_LIMIT,
+    VIF_LIMIT,
+    column_collinearity,
+    describe,
+    model_collinearity,
+)
+from identification.data_roles import DEFAULT_GAP_S, assign_roles
+from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
+from identification.library import build_library, feature_matrix
 from identification.metrics import LOSSES, table_metrics
 from identification.model_file import TARGET_NAMES, Model, TargetModel
 from identification.pareto import attach_holdout, front_points, select
+
+DEFAULT_BUDGET = 60  # genetic-programming generations per target
+R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 
 
 def parse_targets(text: str | Sequence[str] | None) -> tuple[str, ...]:
@@ -65,75 +81,101 @@ class _Bar:
             self.bar.close()
 
 
+def _rows(d: Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """(X (N,16) = xi then u, targets (N,6)) of a dataset."""
+    return np.hstack([d.xi, d.u]), d.targets
+
+
 def identify(
-    dataset: Any,
+    dataset: Dataset,
     *,
     engine: str = "default",
     targets: Sequence[str] = TARGET_NAMES,
-    budget_s: float = 60.0,
+    budget: int = DEFAULT_BUDGET,
     seed: int = 0,
-    holdout: float = 0.2,
+    pick: Dataset | None = None,
+    validate: Dataset | None = None,
+    pick_fraction: float = 0.2,
+    validate_fraction: float = 0.2,
+    gap_s: float = DEFAULT_GAP_S,
+    r2_threshold: float = R2_THRESHOLD,
     loss: str = "absolute",
     settings: EngineSettings | None = None,
     vehicle: dict[str, Any] | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
 ) -> Model:
-    """Identify the targets from a Dataset (identification.dataset); returns a learned Model."""
+    """Identify the targets from a Dataset (identification.dataset); returns a learned Model.
+
+    budget: genetic-programming generations per target (an iteration count, not seconds). pick / validate:
+    whole flights for those roles, else time blocks of each flight (pick_fraction, validate_fraction) with
+    gap_s (s) between blocks. r2_threshold: a target whose validation R^2 is below it is flagged.
+    """
     if engine not in ENGINE_NAMES:
         raise UserError(f"unknown engine {engine!r}", hint=f"choose one of {', '.join(ENGINE_NAMES)}")
     if loss not in LOSSES:
         raise UserError(f"unknown loss {loss!r}", hint=f"choose one of {', '.join(LOSSES)}")
-    if not budget_s > 0:
-        raise UserError(f"the budget must be a positive number of seconds per target, got {budget_s}")
+    if isinstance(budget, bool) or int(budget) != budget or budget < 1:
+        raise UserError(f"the budget must be a whole number of generations >= 1 per target, got {budget}")
     if seed < 0:
         raise UserError(f"the seed must be >= 0, got {seed}")
+    if not (np.isfinite(r2_threshold) and r2_threshold <= 1.0):
+        raise UserError(f"the validation R^2 threshold must be a number <= 1, got {r2_threshold}")
     settings = settings or EngineSettings()
-    train, hold = dataset.split(holdout)
-    if len(train) < 20:
-        raise UserError(
-            f"{dataset.source}: only {len(train)} training rows after holding out {holdout:.0%}",
-            hint="fly longer, or give more logs",
-        )
-    X = np.hstack([train.xi, train.u])
-    Xh = np.hstack([hold.xi, hold.u])
+    roles = assign_roles(
+        dataset,
+        pick=pick,
+        validate=validate,
+        pick_fraction=pick_fraction,
+        validate_fraction=validate_fraction,
+        gap_s=gap_s,
+    )
+    X, Y = _rows(roles.fit)
+    Xp, Yp = _rows(roles.pick)
+    Xv, Yv = _rows(roles.validate)
     targets_done: dict[str, TargetModel] = {}
     wall: dict[str, dict[str, float]] = {}
     gates: dict[str, float] = {}
-    notes: list[str] = []
+    identifiability: dict[str, Any] = {}
+    below: dict[str, float] = {}
+    warnings: list[str] = []
     total_start = time.perf_counter()
+    library = build_library(settings.sparse.groups)
+    library_names = [f.name for f in library]
+    library_columns = feature_matrix(library, X)
     for name in targets:
         j = TARGET_NAMES.index(name)
-        y, yh = train.targets[:, j], hold.targets[:, j]
+        y, yp, yv = Y[:, j], Yp[:, j], Yv[:, j]
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
-        okh = np.all(np.isfinite(Xh), axis=1) & np.isfinite(yh)
+        okp = np.all(np.isfinite(Xp), axis=1) & np.isfinite(yp)
+        okv = np.all(np.isfinite(Xv), axis=1) & np.isfinite(yv)
         eng = make_engine(engine, settings)
         bar = _Bar(name, progress)
         start = time.perf_counter()
         try:
-            candidates = eng.fit(X[ok], y[ok], name, budget_s, seed, loss, bar, (Xh[okh], yh[okh]))
+            candidates = eng.fit(X[ok], y[ok], name, int(budget), seed, loss, bar, (Xp[okp], yp[okp]))
         except BaseException:
             bar.close("failed")
             raise
         if not candidates:
             bar.close("no candidates")
             raise UserError(f"engine {engine} found no expression for {name}", hint="raise --budget")
-        attach_holdout(candidates, Xh[okh], yh[okh], loss)
-        chosen = select(candidates, settings.selection, scale=float(np.std(yh[okh])) if okh.any() else 1.0)
+        attach_holdout(candidates, Xp[okp], yp[okp], loss)
+        chosen = select(candidates, settings.selection, scale=float(np.std(yp[okp])) if okp.any() else 1.0)
         elapsed = time.perf_counter() - start
-        metrics = {"train": table_metrics(y[ok], chosen.evaluate(X[ok]))}
-        if okh.any():
-            metrics["validation"] = table_metrics(yh[okh], chosen.evaluate(Xh[okh]))
+        metrics = {
+            "train": table_metrics(y[ok], chosen.evaluate(X[ok])),
+            "pick": table_metrics(yp[okp], chosen.evaluate(Xp[okp])),
+            "validation": table_metrics(yv[okv], chosen.evaluate(Xv[okv])),
+        }
         timings = {k: round(v, 3) for k, v in getattr(eng, "timings", {}).items()}
         timings["total"] = round(elapsed, 3)
         wall[name] = timings
         if getattr(eng, "gate_r2", None) is not None:
             gates[name] = float(eng.gate_r2)
-        if getattr(eng, "capped_by_time", False):
-            notes.append(
-                f"{name}: genetic programming stopped at the time budget before its generation budget "
-                "(the result may differ on a faster or slower machine; raise --budget)"
-            )
+        coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
+        identifiability[name] = coll.as_dict()
+        warnings += describe(name, coll)
         targets_done[name] = TargetModel(
             name=name,
             expression=chosen.expression,
@@ -142,10 +184,23 @@ def identify(
             engine=chosen.engine,
             wall_time_s=elapsed,
         )
-        r2v = metrics.get("validation", metrics["train"])["r2"]
+        r2v = metrics["validation"]["r2"]
+        if not r2v >= r2_threshold:
+            below[name] = float(r2v)
+            warnings.append(
+                f"warning: {name}: validation R^2 {r2v:.6f} is below the threshold {r2_threshold:g}"
+            )
         bar.close(f"R2={r2v:.6f} complexity {chosen.complexity} ({chosen.engine})")
         if log:
             log(f"{name}: R2 {r2v:.6f}, complexity {chosen.complexity}, {chosen.engine}, {elapsed:.1f} s")
+    cand = column_collinearity(library_columns, library_names)
+    if cand.unidentifiable:
+        worst = ", ".join(f"{t.term} ~ {t.partner}" for t in cand.unidentifiable[:3])
+        warnings.append(
+            f"note: candidate features: condition number {cand.condition_number:.3g}, "
+            f"{len(cand.unidentifiable)} of {len(cand.terms)} with VIF > {cand.vif_limit:g} on this flight "
+            f"(e.g. {worst}); to separate them: {cand.advice()}"
+        )
     flights = [
         {
             "file": f.file,
@@ -160,18 +215,40 @@ def identify(
         "name": engine,
         "loss": loss,
         "seed": seed,
-        "budget_s_per_target": budget_s,
-        "holdout_fraction": holdout,
-        "selection": "smallest complexity with held-out loss <= best*(1+rel_tol) + abs_tol*std(held-out y)",
+        "budget_generations_per_target": int(budget),
+        "selection": "smallest complexity with pick-set loss <= best*(1+rel_tol) + abs_tol*std(pick-set y)",
         "settings": settings.as_dict(),
         "wall_time_s": wall,
         "total_wall_time_s": round(time.perf_counter() - total_start, 3),
-        "rows": {"train": int(len(train)), "holdout": int(len(hold)), "dropped": int(dataset.dropped_rows)},
+        "rows": {
+            "fit": int(len(roles.fit)),
+            "pick": int(len(roles.pick)),
+            "validate": int(len(roles.validate)),
+            "dropped": int(dataset.dropped_rows),
+        },
     }
     if gates:
-        engine_info["sparse_holdout_r2"] = gates
-    if notes:
-        engine_info["notes"] = notes
-        for note in notes:
-            print(f"note: {note}", file=sys.stderr)
-    return Model(targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info)
+        engine_info["sparse_pick_r2"] = gates
+    extra = {
+        "data": roles.as_dict(),
+        "checks": {
+            "validation_r2_threshold": float(r2_threshold),
+            "below_threshold": below,
+            "vif_limit": VIF_LIMIT,
+            "confounder_vif_limit": CONFOUNDER_VIF_LIMIT,
+        },
+        "identifiability": {
+            "targets": identifiability,
+            "candidate_features": {
+                "condition_number": cand.as_dict()["condition_number"],
+                "features": len(cand.terms),
+                "vif_above_limit": len(cand.unidentifiable),
+                "worst": cand.as_dict()["not_identifiable"][:10],
+            },
+        },
+    }
+    for line in warnings:
+        print(line, file=sys.stderr)
+    return Model(
+        targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info, extra=extra
+    )

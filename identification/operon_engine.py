@@ -2,8 +2,8 @@
 
 The paper's building blocks (add, sub, mul, div, sin, cos, constant) over the 16 variables plus engineered
 inputs (f1..f4, g, the thrust direction); NSGA-II on (r2, length) gives a real Pareto front. Constant
-fitting (Levenberg-Marquardt) is on; the run length is a generation budget, so a seed gives the same front
-on any machine and thread count (the time budget only caps it, and a capped run says so).
+fitting (Levenberg-Marquardt) is on; the run length is a generation budget with no time cap, so a seed
+gives the same front on any machine and thread count.
 """
 
 from __future__ import annotations
@@ -32,20 +32,19 @@ class OperonEngine:
         self.settings = settings or OperonSettings()
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
-        self.capped_by_time = False
 
     def fit(
         self,
         X: np.ndarray,
         y: np.ndarray,
         target: str,
-        budget_s: float,
+        budget: int,
         seed: int,
         loss: str = "absolute",
         progress: Progress | None = None,
         holdout: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> list[Candidate]:
-        """Evolve expressions for one target; every front member becomes a candidate in the 16 variables."""
+        """Evolve one target for `budget` generations; each front member a candidate in the 16 variables."""
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {LOSSES}")
         try:
@@ -61,24 +60,22 @@ class OperonEngine:
         y = np.asarray(y, dtype=float)
         inputs, names, extra = input_matrix(X, s.engineered_inputs)
         if progress:
-            progress(0.0, f"{s.generations} generations")
+            progress(0.0, f"{int(budget)} generations")
         reg = SymbolicRegressor(
             allowed_symbols=s.allowed_symbols,
             objectives=["r2", "length"],
             optimizer_iterations=s.optimizer_iterations,
             population_size=s.population_size,
-            generations=s.generations,
+            generations=int(budget),
             max_length=s.max_length,
             max_depth=s.max_depth,
             n_threads=s.n_threads,
-            max_time=max(1, int(np.ceil(budget_s))),
             random_state=int(seed),
         )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             reg.fit(inputs, y)
         self.stats = dict(reg.stats_)
-        self.capped_by_time = int(reg.stats_.get("generations", s.generations)) < s.generations
         mapping = {**SYMBOLS, **extra}
         candidates: list[Candidate] = []
         seen: set[str] = set()
@@ -95,6 +92,5 @@ class OperonEngine:
             candidates.append(make_candidate(expr, X, y, loss, self.name))
         self.timings = {"operon": time.perf_counter() - start}
         if progress:
-            note = " (capped by the time budget)" if self.capped_by_time else ""
-            progress(1.0, f"{len(candidates)} candidates{note}")
+            progress(1.0, f"{len(candidates)} candidates")
         return candidates

@@ -1,9 +1,11 @@
-"""One Pareto front per target (complexity against error) and the final pick on held-out data.
+"""One Pareto front per target (complexity against error) and the final pick on the pick rows.
 
-The pick: among candidates with a finite held-out loss, let `best` be the smallest held-out loss; choose the
-least complex candidate whose held-out loss is <= best * (1 + rel_tol) + abs_tol * std(held-out target),
-ties broken by the lower held-out loss. rel_tol (2%) lets a simpler model win when extra terms only fit
-noise; abs_tol (1e-9 of the target's spread) treats differences at rounding level as equal on noise-free data.
+The pick rows (identification.data_roles) are held out from fitting and never used for validation; the
+"held-out loss" below is the loss on them. The pick: among candidates with a finite held-out loss, let
+`best` be the smallest held-out loss; choose the least complex candidate whose held-out loss is
+<= best * (1 + rel_tol) + abs_tol * std(held-out target), ties broken by the lower held-out loss.
+rel_tol (2%) lets a simpler model win when extra terms only fit noise; abs_tol (1e-4 of the target's
+spread) treats differences at rounding level as equal on noise-free data.
 """
 
 from __future__ import annotations

@@ -91,13 +91,13 @@ class PysrEngine:
         X: np.ndarray,
         y: np.ndarray,
         target: str,
-        budget_s: float,
+        budget: int,
         seed: int,
         loss: str = "absolute",
         progress: Progress | None = None,
         holdout: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> list[Candidate]:
-        """Fit one target with PySR; every row of its hall of fame becomes a candidate."""
+        """Fit one target with PySR, `budget` iterations (no time cap); a candidate per hall-of-fame row."""
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {LOSSES}")
         s = self.settings
@@ -116,9 +116,9 @@ class PysrEngine:
         mapping = {**SYMBOLS, **extra}
         alias_map = {a: mapping[n] for a, n in zip(aliases, names, strict=True)}
         if progress:
-            progress(0.0, f"{s.niterations} iterations")
+            progress(0.0, f"{int(budget)} iterations")
         reg = PySRRegressor(
-            niterations=s.niterations,
+            niterations=int(budget),
             populations=s.populations,
             maxsize=s.maxsize,
             binary_operators=list(s.binary_operators),
@@ -127,7 +127,6 @@ class PysrEngine:
             random_state=int(seed),
             deterministic=True,
             parallelism="serial",
-            timeout_in_seconds=float(budget_s),
             progress=False,
             verbosity=0,
             temp_equation_file=True,

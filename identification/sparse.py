@@ -353,26 +353,26 @@ class SparseEngine:
         X: np.ndarray,
         y: np.ndarray,
         target: str,
-        budget_s: float,
+        budget: int,
         seed: int,
         loss: str = "absolute",
         progress: Progress | None = None,
         holdout: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> list[Candidate]:
-        """Candidates of every size for one target (deterministic: the seed is unused)."""
+        """Candidates of every size for one target (deterministic: seed and budget unused, the work is
+        fixed by the settings)."""
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {LOSSES}")
         start = time.perf_counter()
         X = np.asarray(X, dtype=float)
         y = np.asarray(y, dtype=float)
         with _single_threaded_blas():
-            return self._fit(X, y, budget_s, loss, progress, start)
+            return self._fit(X, y, loss, progress, start)
 
     def _fit(
         self,
         X: np.ndarray,
         y: np.ndarray,
-        budget_s: float,
         loss: str,
         progress: Progress | None,
         start: float,
@@ -400,7 +400,5 @@ class SparseEngine:
             candidates.append(cand)
             if progress:
                 progress(0.5 + 0.5 * (i + 1) / len(sets), f"{len(candidates)} candidates")
-            if time.perf_counter() - start > budget_s and candidates:
-                break
         self.timings = {"sparse": time.perf_counter() - start}
         return candidates

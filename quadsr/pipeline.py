@@ -39,11 +39,11 @@ TRUE_LABEL = "backstepping (true model)"
 
 @dataclass(frozen=True)
 class PaperSettings:
-    """A run's budgets: flight lengths [s, simulated], SR budget [s wall per target], link timeout [s]."""
+    """A run's budgets: flight lengths [s, simulated], SR generations per target, link timeout [s]."""
 
     name: str  # default | quick
     train_duration: float  # s, the paper-train flight (its four speed groups share it evenly)
-    budget_s: float  # s per target, the SR engine's time budget
+    budget: int  # genetic-programming generations per target (an iteration budget, not seconds)
     track_duration: float  # s, each tracking flight
     link_timeout: float = 10.0  # s a client waits for the SITL's next step before it gives up
 
@@ -51,12 +51,12 @@ class PaperSettings:
         """One line: the budgets."""
         per_group = int(round(self.train_duration / 4 / 0.004))
         return (f"{self.name} budgets: paper-train {self.train_duration:g} s ({per_group} samples per "
-                f"speed group), SR budget {self.budget_s:g} s per target, tracking flights "
+                f"speed group), SR budget {self.budget} generations per target, tracking flights "
                 f"{self.track_duration:g} s")
 
 
-DEFAULT_SETTINGS = PaperSettings("default", train_duration=32.0, budget_s=60.0, track_duration=20.0)
-QUICK_SETTINGS = PaperSettings("quick", train_duration=16.0, budget_s=10.0, track_duration=12.0)
+DEFAULT_SETTINGS = PaperSettings("default", train_duration=32.0, budget=60, track_duration=20.0)
+QUICK_SETTINGS = PaperSettings("quick", train_duration=16.0, budget=10, track_duration=12.0)
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -335,7 +335,9 @@ class PaperPipeline:
         r = self.run
         train = load_dataset(r.files["tlog_paper-train"])
         r.rows["train"] = len(train)
-        r.model = identify(train, engine="default", budget_s=r.settings.budget_s, seed=r.seed,
+        # fit and pick on paper-train (time blocks), validate on the other flight (never seen by either)
+        val = load_dataset(r.files["tlog_paper-validate"])
+        r.model = identify(train, engine="default", budget=r.settings.budget, seed=r.seed, validate=val,
                            vehicle=vehicle_provenance(r.vehicle), progress=r.progress)
         r.files["model"] = save_model(r.model, r.out / "model.yaml")
         return f"{len(train)} rows; wrote {r.files['model']}"

@@ -33,8 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("results"), metavar="DIR",
                    help="output folder (default results/)")
     p.add_argument("--quick", action="store_true",
-                   help="smaller budgets: 16 s paper-train (1000 samples per speed group), SR budget 10 s "
-                        "per target, 12 s tracking flights (default: 32 s, 60 s, 20 s)")
+                   help="smaller budgets: 16 s paper-train (1000 samples per speed group), SR budget 10 "
+                        "generations per target, 12 s tracking flights (default: 32 s, 60, 20 s)")
     p.add_argument("--seed", type=int, default=0, metavar="N",
                    help="seed of every random draw: excitation, SR engine, SITL (default 0)")
     p.add_argument("--vehicle", default="fang-chen-buaa", metavar="NAME|FILE",

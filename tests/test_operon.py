@@ -19,7 +19,7 @@ from identification.pareto import attach_holdout, pareto_front, select
 from identification.true_model import random_states, true_model
 
 SMALL = OperonSettings(
-    population_size=200, generations=12, max_length=20, optimizer_iterations=5, n_threads=2
+    population_size=200, max_length=20, optimizer_iterations=5, n_threads=2
 )
 
 
@@ -34,7 +34,7 @@ def test_operon_finds_the_roll_torque_term_beats_a_constant_and_repeats():
     Xt, yt, Xh, yh = split_holdout(X, y)
     runs = []
     for _ in range(2):
-        cands = OperonEngine(SMALL).fit(Xt, yt, "dwx", 60, seed=5, loss="absolute")
+        cands = OperonEngine(SMALL).fit(Xt, yt, "dwx", 12, seed=5, loss="absolute")
         assert cands and all(c.engine == "operon" for c in cands)
         runs.append([expression_to_string(c.expression) for c in cands])
     assert runs[0] == runs[1]  # same seed, generation budget: the same front
@@ -57,7 +57,7 @@ def test_default_engine_calls_operon_only_where_the_library_falls_short():
     Xt, yt, Xh, yh = split_holdout(X, y + extra)
     settings = EngineSettings(sparse=SparseSettings(thresholds=15), operon=SMALL)
     engine = DefaultEngine(settings)
-    cands = engine.fit(Xt, yt, "dwx", 60, 1, "absolute", holdout=(Xh, yh))
+    cands = engine.fit(Xt, yt, "dwx", 12, 1, "absolute", holdout=(Xh, yh))
     assert engine.gate_r2 < settings.gate_r2 and "operon" in engine.timings
     attach_holdout(cands, Xh, yh, "absolute")
     best = select(cands, settings.selection, float(np.std(yh)))
@@ -67,5 +67,5 @@ def test_default_engine_calls_operon_only_where_the_library_falls_short():
     # on a target the library explains, no genetic programming runs
     Xt, yt, Xh, yh = split_holdout(X, y)
     engine = DefaultEngine(settings)
-    cands = engine.fit(Xt, yt, "dwx", 60, 1, "absolute", holdout=(Xh, yh))
+    cands = engine.fit(Xt, yt, "dwx", 12, 1, "absolute", holdout=(Xh, yh))
     assert "operon" not in engine.timings and all(c.engine == "sparse" for c in cands)

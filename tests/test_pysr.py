@@ -70,9 +70,9 @@ def test_pysr_engine_fits_or_raises_the_clear_error():
         return
     # PySR and Julia are here: a short real, deterministic fit
     engine = make_engine("pysr")
-    engine.settings = PysrSettings(niterations=5, populations=4, maxsize=20)
+    engine.settings = PysrSettings(populations=4, maxsize=20)
     Xt, yt, Xh, yh = split_holdout(X, y)
-    cands = engine.fit(Xt, yt, "dwz", 120, 0, "squared")
+    cands = engine.fit(Xt, yt, "dwz", 5, 0, "squared")
     assert cands
     assert max(r2(yh, c.evaluate(Xh)) for c in cands) > 0.9
 
@@ -85,6 +85,6 @@ def test_pysr_real_fit_repeats_with_a_seed():
     runs = []
     for _ in range(2):
         engine = make_engine("pysr")
-        engine.settings = PysrSettings(niterations=4, populations=4, maxsize=20)
-        runs.append([str(c.expression) for c in engine.fit(X, y, "dwx", 120, 7, "absolute")])
+        engine.settings = PysrSettings(populations=4, maxsize=20)
+        runs.append([str(c.expression) for c in engine.fit(X, y, "dwx", 4, 7, "absolute")])
     assert runs[0] == runs[1]

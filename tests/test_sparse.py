@@ -20,7 +20,7 @@ from identification.validate import compare_models
 def test_recovers_every_true_term_within_2_percent_in_seconds():
     data = synthetic_dataset(3000, seed=11)
     start = time.perf_counter()
-    model = identify(data, engine="sparse", budget_s=30, seed=0, progress=False)
+    model = identify(data, engine="sparse", budget=30, seed=0, progress=False)
     elapsed = time.perf_counter() - start
     assert elapsed < 30, f"six targets took {elapsed:.1f} s"
     for cmp in compare_models(model, true_model("fang-chen-buaa")):
@@ -34,7 +34,7 @@ def test_recovers_every_true_term_within_2_percent_in_seconds():
 
 def test_with_one_percent_noise_every_target_keeps_r2_above_0_99():
     data = synthetic_dataset(3000, seed=12, noise=0.01)
-    model = identify(data, engine="sparse", budget_s=30, seed=0, progress=False)
+    model = identify(data, engine="sparse", budget=30, seed=0, progress=False)
     for name in TARGET_NAMES:
         assert model.targets[name].metrics["validation"]["r2"] >= 0.99, name
     # the dominant terms survive the noise: wx' keeps its gyroscopic and roll-torque terms

@@ -55,7 +55,7 @@ def _true_model_text(vehicle: str) -> str:
 
 
 def learn_nominal_model(vehicle_yaml: str, vehicle_name: str, profile: str, duration: float, seed: int,
-                        budget: float) -> str:
+                        budget: int) -> str:
     """Fly `profile` on the nominal vehicle (own SITL child) and identify a model; the model file's text."""
     from identification.dataset import load_dataset
     from identification.identify import identify
@@ -69,7 +69,7 @@ def learn_nominal_model(vehicle_yaml: str, vehicle_name: str, profile: str, dura
         base = OPEN_LOOP_SITL if profile.startswith("paper") else GROUND_SITL
         fly_excitation(profile, tlog, sitl_args=["--vehicle", str(vehicle), "--sensors", "ideal", *base],
                        seed=seed, duration=duration, vehicle=str(vehicle))
-        model = identify(load_dataset(tlog), engine="default", budget_s=budget, seed=seed, progress=False)
+        model = identify(load_dataset(tlog), engine="default", budget=budget, seed=seed, progress=False)
         return save_model(model, Path(tmp) / "learned.yaml").read_text()
 
 

@@ -82,7 +82,7 @@ class CampaignSpec:
     random: dict[str, Distribution]
     samples: int
     learned_model: LearnedModelSpec
-    identify_budget: float = 10.0  # s per target: the SR engine's budget in learn-fly and the learned model
+    identify_budget: int = 60  # SR generations per target (learn-fly and the learned model): an iteration budget
     keep_flights: bool = False  # copy each task's flight folder to OUT/flights/<task id>
     vehicle_keys: tuple[str, ...] = field(default=())  # the parameters that are vehicle-file keys
     trajectory_files: dict[str, str] = field(default_factory=dict)  # trajectory value -> its file's text
@@ -328,9 +328,10 @@ def load_campaign(path: str | Path) -> CampaignSpec:
     unknown = set(models) - {"learned"}
     if unknown:
         raise UserError(f"{where}: unknown key 'models.{sorted(unknown)[0]}'", hint="known: learned")
-    budget = float_value(where, "identify_budget", data.get("identify_budget", 10.0))
-    if not math.isfinite(budget) or budget <= 0:
-        raise UserError(f"{where}: key 'identify_budget' must be > 0")
+    budget = data.get("identify_budget", 60)
+    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 1:
+        raise UserError(f"{where}: key 'identify_budget' must be an integer >= 1 (generations per target), "
+                        f"got {budget!r}")
     keep = data.get("keep_flights", False)
     if not isinstance(keep, bool):
         raise UserError(f"{where}: key 'keep_flights' must be true or false")

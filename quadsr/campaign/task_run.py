@@ -41,7 +41,7 @@ class TaskContext:
     true_model_yaml: str  # the nominal vehicle's exact model (quadsr model-from-vehicle), as text
     learned_model_yaml: str | None  # the model learned once on the nominal vehicle (pipeline fly), as text
     pipeline: str = "fly"
-    identify_budget: float = 10.0  # s per target (learn-fly)
+    identify_budget: int = 60  # genetic-programming generations per target (learn-fly)
     keep_flights: str | None = None  # a folder to copy each task's flight folder into (shared file system)
     trajectory_files: dict[str, str] | None = None  # trajectory value -> file text (not built-in ones)
 
@@ -116,7 +116,7 @@ def _learn(task: Task, ctx: TaskContext, vehicle_path: Path, work: Path,
                    vehicle=str(vehicle_path))
     targets_from = "sensors" if task.params["sensors"] == "realistic" else "truth"
     model = identify(load_dataset(train, targets=targets_from), engine="default",
-                     budget_s=ctx.identify_budget, seed=task.seed, progress=False)
+                     budget=ctx.identify_budget, seed=task.seed, progress=False)
     path = save_model(model, work / "learned.yaml")
     _, metrics = evaluate_model(load_model(path), load_dataset(check, targets=targets_from))
     row = {f"r2_{target}": float(m["r2"]) for target, m in metrics.items()}

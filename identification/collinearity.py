@@ -1,0 +1,246 @@
+"""Which terms a flight can identify: condition number and variance inflation of regressor columns.
+
+Closed-loop data makes regressors collinear: an attitude controller ties the rotor speeds to the angles and
+rates, so (for example) the roll torque f2 moves with -wx and the least-squares split between them is
+arbitrary. Two measures on the columns (each standardised to zero mean and unit variance on the fit rows):
+- the condition number of the column matrix (ratio of its largest to smallest singular value; 1 for
+  orthogonal columns, large when some combination is nearly zero);
+- each column's variance inflation factor VIF_j = 1 / (1 - R_j^2), R_j^2 that of the column regressed on
+  the others (the diagonal of the inverse correlation matrix): by how much the coefficient's variance is
+  inflated by the other columns. VIF above `vif_limit` (default 10, the usual rule of thumb) marks the term
+  as not identifiable from this flight: its coefficient trades off against the columns it is tied to.
+A constant column has no variance; it is left out of both measures (the intercept is not a collinearity).
+
+A chosen model can also look well conditioned because the engine dropped a true term tied to one it kept
+(the roll torque f2 absorbs the rate damping wx when a rate controller makes f2 follow -wx). So each
+candidate feature not in the model is also tried beside the model's terms: when adding it would push a
+term's VIF over CONFOUNDER_VIF_LIMIT (100, "severe"), that term and that candidate cannot be told apart from
+this flight. The higher limit because a left-out candidate is a suspicion, not a term of the model: on the
+open-loop paper-train flight (pitch within a few tenths of a rad) the closest pairs, thrust terms with and
+without a cos(theta) factor, give 34-38 and are still separated exactly on noise-free data; a roll torque
+tied to -wx by a rate controller gives 3,200 and loses the damping term.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import sympy
+
+from identification.model_file import SYMBOLS, VARIABLE_NAMES, expression_to_string
+
+VIF_LIMIT = 10.0
+CONFOUNDER_VIF_LIMIT = 100.0
+
+# Advice per kind of variable in a collinear term: what excitation separates it from the others.
+_ADVICE = {
+    "rotor": "excite each motor independently of the attitude controller (open-loop motor steps at altitude "
+    "as in paper-train, or a larger per-motor PRBS added to the controller's output as in closed-loop)",
+    "angle": "fly larger and more varied attitudes (roll, pitch and yaw through wider ranges)",
+    "rate": "excite body rates independently of the rotor commands (sharper attitude steps or motor PRBS "
+    "at different frequencies)",
+    "velocity": "fly at several speeds in several directions (forward, sideways, climbing, descending)",
+    "position": "fly over a wider range of positions and heights",
+}
+_KIND = {
+    **{n: "rotor" for n in ("u1", "u2", "u3", "u4")},
+    **{n: "angle" for n in ("phi", "theta", "psi")},
+    **{n: "rate" for n in ("wx", "wy", "wz")},
+    **{n: "velocity" for n in ("vx", "vy", "vz")},
+    **{n: "position" for n in ("x", "y", "z")},
+}
+
+
+@dataclass(frozen=True)
+class TermCollinearity:
+    """One regressor column: its VIF and the other column that weighs most in explaining it (the largest
+    standardised coefficient when it is regressed on all the others), with that coefficient."""
+
+    term: str
+    vif: float
+    partner: str
+    weight: float
+
+
+@dataclass(frozen=True)
+class Collinearity:
+    """Condition number of the standardised columns and each column's VIF (inf when exactly dependent)."""
+
+    condition_number: float
+    terms: tuple[TermCollinearity, ...]
+    vif_limit: float = VIF_LIMIT
+    confounders: tuple[TermCollinearity, ...] = ()  # a model term, with a candidate not in the model
+
+    @property
+    def unidentifiable(self) -> list[TermCollinearity]:
+        """The terms whose VIF exceeds the limit, worst first."""
+        bad = [t for t in self.terms if not t.vif <= self.vif_limit]
+        return sorted(bad, key=lambda t: -t.vif if np.isfinite(t.vif) else -np.inf)
+
+    def advice(self) -> str:
+        """What excitation would separate the unidentifiable terms ('' when every term is identifiable)."""
+        kinds: list[str] = []
+        for t in [*self.unidentifiable, *self.confounders]:
+            for name in (t.term, t.partner):
+                for sym in sorted(_symbols_in(name)):
+                    k = _KIND.get(sym)
+                    if k and k not in kinds:
+                        kinds.append(k)
+        return "; ".join(_ADVICE[k] for k in kinds)
+
+    def as_dict(self) -> dict:
+        """Plain mapping for the model file."""
+        return {
+            "condition_number": _finite(self.condition_number),
+            "vif_limit": self.vif_limit,
+            "not_identifiable": [
+                {
+                    "term": t.term,
+                    "vif": _finite(t.vif),
+                    "tied_to": t.partner,
+                    "weight": round(t.weight, 6),
+                }
+                for t in self.unidentifiable
+            ],
+            "confused_with_candidates": [
+                {"term": t.term, "candidate": t.partner, "vif_with_it": _finite(t.vif)}
+                for t in self.confounders
+            ],
+            "excitation": self.advice(),
+        }
+
+
+def _finite(v: float) -> float | str:
+    return float(f"{v:.6g}") if np.isfinite(v) else "inf"
+
+
+def _symbols_in(text: str) -> set[str]:
+    try:
+        expr = sympy.sympify(text, locals=dict(SYMBOLS))
+    except (sympy.SympifyError, TypeError, SyntaxError):
+        return set()
+    return {str(s) for s in expr.free_symbols}
+
+
+def column_collinearity(
+    columns: np.ndarray, names: Sequence[str], vif_limit: float = VIF_LIMIT
+) -> Collinearity:
+    """Condition number and VIFs of the columns (N,k) named `names` (module docstring)."""
+    a = np.asarray(columns, dtype=float)
+    a = a[np.all(np.isfinite(a), axis=1)]
+    if len(a) < 2:
+        return Collinearity(1.0, (), vif_limit)
+    z, varying = _standardise(a)
+    idx = np.flatnonzero(varying)
+    if len(idx) == 0:
+        return Collinearity(1.0, (), vif_limit)
+    z = z[:, idx]
+    sv = np.linalg.svd(z, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > sv[0] * 1e-15 else float("inf")
+    corr = (z.T @ z) / len(z)
+    terms = []
+    for k, j in enumerate(idx):
+        if len(idx) == 1:
+            terms.append(TermCollinearity(names[j], 1.0, "", 0.0))
+            continue
+        others = np.delete(np.arange(len(idx)), k)
+        # regression of column k on the others, from the correlation matrix (normal equations)
+        coef, *_ = np.linalg.lstsq(corr[np.ix_(others, others)], corr[others, k], rcond=1e-13)
+        unexplained = 1.0 - float(coef @ corr[others, k])
+        vif = 1.0 / unexplained if unexplained > 1e-12 else float("inf")
+        p = int(np.argmax(np.abs(coef)))
+        terms.append(TermCollinearity(names[j], max(vif, 1.0), names[idx[others[p]]], float(coef[p])))
+    return Collinearity(cond, tuple(terms), vif_limit)
+
+
+def expression_columns(expr: sympy.Expr, X: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """The additive terms of an expression, coefficient dropped, as columns on X (N,16) and their names."""
+    shapes: list[sympy.Expr] = []
+    for term in sympy.Add.make_args(expr):
+        _, shape = term.as_coeff_Mul()
+        if shape != 1 and shape not in shapes:
+            shapes.append(shape)
+    args = [SYMBOLS[n] for n in VARIABLE_NAMES]
+    X = np.asarray(X, dtype=float)
+    cols = np.empty((len(X), len(shapes)))
+    for j, shape in enumerate(shapes):
+        fn = sympy.lambdify(args, shape, modules="numpy")
+        with np.errstate(all="ignore"):
+            cols[:, j] = np.broadcast_to(np.asarray(fn(*X.T), dtype=float), (len(X),))
+    return cols, [expression_to_string(s) for s in shapes]
+
+
+def model_collinearity(
+    expr: sympy.Expr,
+    X: np.ndarray,
+    candidates: tuple[np.ndarray, Sequence[str]] | None = None,
+    vif_limit: float = VIF_LIMIT,
+    confounder_limit: float = CONFOUNDER_VIF_LIMIT,
+) -> Collinearity:
+    """Collinearity of a chosen expression's terms on the fit rows X (N,16: the 12 states then u1..u4),
+    and, given candidate feature columns (N,m) with names, the candidates confused with its terms."""
+    cols, names = expression_columns(expr, X)
+    own = column_collinearity(cols, names, vif_limit)
+    if candidates is None or not names:
+        return own
+    return replace(own, confounders=_confounders(cols, names, *candidates, confounder_limit))
+
+
+def _standardise(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(columns scaled to zero mean and unit variance, mask of the columns that vary)."""
+    std = a.std(axis=0)
+    varying = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    z = np.zeros_like(a)
+    z[:, varying] = (a[:, varying] - a[:, varying].mean(axis=0)) / std[varying]
+    return z, varying
+
+
+def _confounders(
+    cols: np.ndarray, names: Sequence[str], cand: np.ndarray, cand_names: Sequence[str], vif_limit: float
+) -> tuple[TermCollinearity, ...]:
+    """Per model term, the candidate (not in the model) whose addition gives it the largest VIF, when
+    that VIF exceeds the limit; a candidate equal to a model term is the term itself and is skipped."""
+    k = cols.shape[1]
+    both = np.hstack([cols, np.asarray(cand, dtype=float)])
+    both = both[np.all(np.isfinite(both), axis=1)]
+    if len(both) < 2:
+        return ()
+    z, varying = _standardise(both)
+    corr = (z.T @ z) / len(z)
+    own = [j for j in range(k) if varying[j]]
+    worst: dict[int, TermCollinearity] = {}
+    for c in range(k, both.shape[1]):
+        if not varying[c] or any(abs(corr[c, j]) > 1 - 1e-12 for j in own):
+            continue  # constant, or the very same column as a model term
+        group = [*own, c]
+        for j in own:
+            others = [g for g in group if g != j]
+            coef, *_ = np.linalg.lstsq(corr[np.ix_(others, others)], corr[others, j], rcond=1e-13)
+            unexplained = 1.0 - float(coef @ corr[others, j])
+            vif = 1.0 / unexplained if unexplained > 1e-12 else float("inf")
+            if vif > vif_limit and (j not in worst or vif > worst[j].vif):
+                worst[j] = TermCollinearity(names[j], vif, cand_names[c - k], float(coef[-1]))
+    return tuple(worst[j] for j in sorted(worst))
+
+
+def describe(target: str, c: Collinearity) -> list[str]:
+    """Terminal lines: which terms of a target are not identifiable from this flight and what would help."""
+    bad = c.unidentifiable
+    lines = []
+    if bad:
+        parts = [f"{t.term} (VIF {t.vif:.3g}, tied most to {t.partner})" for t in bad]
+        lines.append(
+            f"warning: {target}: {len(bad)} term(s) not identifiable from this flight (condition number "
+            f"{c.condition_number:.3g}): " + "; ".join(parts)
+        )
+    if c.confounders:
+        parts = [f"{t.term} with {t.partner} (VIF {t.vif:.3g})" for t in c.confounders]
+        lines.append(
+            f"warning: {target}: terms that cannot be told apart from candidates left out of the model on "
+            "this flight (the coefficient may hold both): " + "; ".join(parts)
+        )
+    if lines:
+        lines.append(f"  to separate them: {c.advice()}")
+    return lines
