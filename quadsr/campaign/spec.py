@@ -9,7 +9,6 @@ grid point, so controllers are compared on the same vehicles and winds). See REA
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,7 +81,7 @@ class CampaignSpec:
     random: dict[str, Distribution]
     samples: int
     learned_model: LearnedModelSpec
-    identify_budget: int = 60  # SR generations per target (learn-fly and the learned model): an iteration budget
+    identify_budget: int = 60  # SR generations per target (learn-fly, the learned model): iterations
     keep_flights: bool = False  # copy each task's flight folder to OUT/flights/<task id>
     vehicle_keys: tuple[str, ...] = field(default=())  # the parameters that are vehicle-file keys
     trajectory_files: dict[str, str] = field(default_factory=dict)  # trajectory value -> its file's text
