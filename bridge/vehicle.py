@@ -65,6 +65,8 @@ class MotorConfig:
     curve_slope: float  # Cr, rad/s
     curve_offset: float  # wb, rad/s
     rotor_inertia: float  # Jm, kg m^2 (rotor + motor bell about the shaft, for the gyroscopic torque)
+    pwm_min: float = 1000.0  # us, the ESC pulse of throttle 0 (an autopilot's PWM output, e.g. ArduPilot's)
+    pwm_max: float = 2000.0  # us, the ESC pulse of throttle 1
 
 
 @dataclass(frozen=True)
@@ -439,8 +441,14 @@ def _parse(where: str, data: Any, path: Path) -> VehicleConfig:
         curve_slope=ms.number("curve_slope", positive=True),
         curve_offset=ms.number("curve_offset"),
         rotor_inertia=ms.number("rotor_inertia", nonnegative=True),
+        pwm_min=ms.number("pwm_min", positive=True, default=1000.0),
+        pwm_max=ms.number("pwm_max", positive=True, default=2000.0),
     )
     ms.done()
+    if not motor.pwm_min < motor.pwm_max <= 65535:
+        raise UserError(f"{where}: keys 'motor.pwm_min' < 'motor.pwm_max' <= 65535 us are required, got "
+                        f"{motor.pwm_min:g} and {motor.pwm_max:g}",
+                        hint="the usual ESC range is 1000 to 2000 us")
     if motor.curve_slope + motor.curve_offset <= 0:
         raise UserError(f"{where}: keys 'motor.curve_slope' + 'motor.curve_offset' (the full-throttle speed) "
                         f"must be > 0, got {motor.curve_slope + motor.curve_offset:g} rad/s")
