@@ -1,0 +1,164 @@
+"""The real ArduCopter (../shared/ardupilot) flies quadsr's SITL through its JSON physics interface, started
+by `quadsr ardupilot` (separate processes, real UDP and TCP, MAVLink 2). Waits are bounded in simulated
+time."""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from bridge.tlog import read_tlog
+from identification.ardupilot_flight import GUIDED, ArduCopterLink
+from tests.conftest import REPO
+
+ARDUPILOT = REPO.parent / "shared" / "ardupilot"
+PID = re.compile(r"ArduCopter pid (\d+)")
+
+
+def free_instance() -> int:
+    """An ArduPilot instance N whose ports (TCP 5760+10N, 5762+10N, 5763+10N; UDP 9002+10N) are free now.
+    PX4 tests use 4560+N, 14540+N, 14550, 18570+N: N in 100..400 keeps ArduPilot's ports (6760-9763,
+    10002-13002) clear of them."""
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    for _ in range(100):
+        n = rng.randrange(100, 400)
+        socks = []
+        try:
+            for port in (5760 + 10 * n, 5762 + 10 * n, 5763 + 10 * n):
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                socks.append(s)
+                s.bind(("127.0.0.1", port))
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            socks.append(s)
+            s.bind(("127.0.0.1", 9002 + 10 * n))
+            return n
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise AssertionError("no free ArduPilot instance found")
+
+
+class Launched:
+    """`quadsr ardupilot` as a child process, its output lines collected."""
+
+    def __init__(self, tmp_path: Path, instance: int):
+        self.instance = instance
+        self.tlog = tmp_path / "truth.tlog"
+        self.workdir = tmp_path / "ap"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "quadsr.cli", "ardupilot", "--ardupilot", str(ARDUPILOT),
+             "-I", str(instance), "--speedup", "100", "--workdir", str(self.workdir),
+             "--log", str(self.tlog), "--wipe"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.lines: list[str] = []
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait_for(self, rx: re.Pattern, timeout: float = 60.0) -> re.Match:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for line in list(self.lines):
+                m = rx.search(line)
+                if m:
+                    return m
+            if self.proc.poll() is not None and not self.reader.is_alive():
+                break
+            time.sleep(0.05)
+        raise AssertionError(f"no line matching {rx.pattern!r}; output:\n" + "\n".join(self.lines[-40:]))
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.reader.join(5)
+        return self.proc.returncode
+
+
+def truth_hold_error(tlog: Path, height: float, tolerance: float, hold_s: float) -> float:
+    """Largest distance (m) of the SITL's true position from the take-off point raised by `height` m, over
+    hold_s s of simulated time starting 3 s after the truth first came within tolerance of it."""
+    truth = [(m.time_boot_ms * 1e-3, (m.x, m.y, m.z)) for _, m in read_tlog(tlog)
+             if m.get_type() == "LOCAL_POSITION_NED" and m.get_srcComponent() == 51]
+    x0, y0, _ = truth[0][1]
+    target = (x0, y0, -height)
+
+    def dist(p):
+        return sum((a - b) ** 2 for a, b in zip(p, target, strict=True)) ** 0.5
+
+    reached = next(t for t, p in truth if dist(p) < tolerance)
+    window = [dist(p) for t, p in truth if reached + 3.0 <= t <= reached + 3.0 + hold_s]
+    assert len(window) > 200 * hold_s, "the truth log does not cover the hold"
+    return max(window)
+
+
+@pytest.mark.e2e
+def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
+    launched = Launched(tmp_path, free_instance())
+    link = None
+    try:
+        pid = int(launched.wait_for(PID).group(1))
+        link = ArduCopterLink(f"tcp:127.0.0.1:{5760 + 10 * launched.instance}", wall_timeout=60.0)
+        assert link.wait_ekf_gps(sim_seconds=120.0) < 120.0
+        link.set_mode(GUIDED)
+        link.arm(sim_seconds=60.0)
+        link.takeoff(5.0, sim_seconds=40.0, tolerance=0.15)
+        link.fly_for(3.0)
+        start = link.sim_time
+        north, east, _ = link.track.ned[-1]
+        link.fly_for(10.0)
+        estimate_error = link.hold_error(start, (north, east, -5.0))
+        link.land(sim_seconds=60.0)
+        assert not link.armed
+        assert estimate_error < 0.15, f"ArduPilot's estimate held within {estimate_error:.3f} m"
+        truth_error = truth_hold_error(launched.tlog, 5.0, 0.15, 10.0)
+        assert truth_error < 0.15, f"true hold error {truth_error:.3f} m"
+
+        # a second take-off, then ArduCopter is killed mid-flight
+        link.set_mode(GUIDED)
+        link.arm(sim_seconds=30.0)
+        link.takeoff(3.0, sim_seconds=40.0, tolerance=0.3)
+        os.kill(pid, signal.SIGKILL)
+        launched.proc.wait(30)
+    finally:
+        if link is not None:
+            link.close()
+        code = launched.stop()
+    out = "\n".join(launched.lines)
+    assert code == 1, out[-3000:]
+    assert "ArduCopter was killed by SIGKILL" in out and "stopping the SITL" in out
+    assert re.search(r"quadsr sitl: t=\d+\.\d+s .* \(exit\)", out), "the SITL stopped cleanly"
+    assert "Traceback" not in out
+    sitl_exit = [line for line in launched.lines if line.endswith("(exit)")][-1]
+    assert "bad_magic=0 bad_size=0" in sitl_exit and "restarts=0" in sitl_exit
+
+    # the flight's DataFlash log (the first arming: closed at its disarm) through quadsr identify
+    logs = sorted((launched.workdir / "logs").glob("*.BIN"))
+    assert logs, "ArduCopter wrote no DataFlash log"
+    model = tmp_path / "model.yaml"
+    run = subprocess.run([sys.executable, "-m", "quadsr.cli", "identify", str(logs[0]), "-o", str(model),
+                          "--motor-curve", "fang-chen-buaa", "--engine", "sparse", "--budget", "20",
+                          "--seed", "0"], capture_output=True, text=True, cwd=REPO, timeout=240)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    rows = int(re.search(r"(\d+) rows from 1 log", run.stdout + run.stderr).group(1))
+    assert rows > 300 and model.is_file()
