@@ -17,10 +17,14 @@ from pymavlink import mavutil
 from bridge.errors import UserError
 
 GUIDED = "GUIDED"
+LOITER = "LOITER"
 LAND = "LAND"
 SYSTEMID = "SYSTEMID"
 POS_HORIZ_ABS = 16  # EKF_STATUS_REPORT flags: horizontal absolute position (GPS) in use
 POS_VERT_ABS = 32
+STICKS_EVERY_S = 0.2  # simulated s between RC_CHANNELS_OVERRIDE while the sticks are held centred
+CENTRE_PWM = 1500  # us: roll, pitch, yaw centred, throttle mid-stick (no climb in LOITER)
+POSITION_AXES = (14, 15, 16, 17, 18, 19)  # SID_AXIS values ArduCopter runs under position control
 
 
 class FlightError(RuntimeError):
@@ -35,20 +39,43 @@ class Track:
     ned: list[tuple[float, float, float]] = field(default_factory=list)
 
 
+@dataclass
+class Chirp:
+    """One System ID chirp flown: its axis and magnitude, simulated start and end (s), and why ArduCopter
+    stopped it early ('' when it ran to the end)."""
+
+    axis: int
+    magnitude: float
+    start: float
+    end: float
+    stopped: str
+
+
 class ArduCopterLink:
     """A MAVLink connection to ArduCopter's SERIAL0, with waits in its simulated time."""
 
     def __init__(self, address: str, wall_timeout: float = 60.0, rate_hz: float = 25.0):
         self.address = address
         self.wall_timeout = wall_timeout  # s wall: no message at all for this long is a dead link
-        self.conn = mavutil.mavlink_connection(address, source_system=255, source_component=190,
-                                               autoreconnect=False)
+        deadline = time.monotonic() + wall_timeout
+        while True:  # ArduCopter opens its TCP port a moment after it starts
+            try:
+                self.conn = mavutil.mavlink_connection(address, source_system=255, source_component=190,
+                                                       autoreconnect=False)
+                break
+            except ConnectionRefusedError:
+                if time.monotonic() > deadline:
+                    raise FlightError(f"ArduCopter refused the connection at {address} for "
+                                      f"{wall_timeout:g} s") from None
+                time.sleep(0.2)
         self.sim_time = 0.0  # s, ArduPilot's time since boot (the latest time_boot_ms seen)
         self.texts: list[str] = []
         self.track = Track()
         self.armed = False
         self.mode = ""
         self.ekf_flags = 0
+        self.sticks_centred = False  # while True, wait_until keeps RC_CHANNELS_OVERRIDE at mid-stick
+        self._next_sticks = 0.0
         if self.conn.wait_heartbeat(timeout=wall_timeout) is None:
             raise FlightError(f"no HEARTBEAT from ArduCopter at {address} within {wall_timeout:g} s")
         self.conn.mav.request_data_stream_send(self.conn.target_system, self.conn.target_component,
@@ -87,6 +114,10 @@ class ArduCopterLink:
         start = self.sim_time
         last_msg = time.monotonic()
         while not done():
+            if self.sticks_centred and self.sim_time >= self._next_sticks:
+                self.conn.mav.rc_channels_override_send(self.conn.target_system, self.conn.target_component,
+                                                        *([CENTRE_PWM] * 4), 0, 0, 0, 0)
+                self._next_sticks = self.sim_time + STICKS_EVERY_S
             if self.sim_time - start > sim_seconds:
                 raise FlightError(f"{what}: not within {sim_seconds:g} s of simulated time "
                                   f"(last texts: {self.texts[-4:]})")
@@ -173,23 +204,38 @@ class ArduCopterLink:
             raise FlightError("no LOCAL_POSITION_NED samples in the hold")
         return max(errors)
 
-    def system_id(self, axis: int, magnitude: float, f_start: float = 0.5, f_stop: float = 8.0,
-                  t_fade: float = 2.0, t_rec: float = 15.0) -> float:
-        """One System ID chirp (SID_AXIS axis, SID_MAGNITUDE, SID_F_START/STOP_HZ, SID_T_FADE_IN/OUT,
-        SID_T_REC s) from a hover: SYSTEMID mode, wait for the chirp, back to GUIDED. Returns its length (s).
+    def system_id(self, axis: int, magnitude: float, f_start: float = 0.5, f_stop: float = 3.0,
+                  t_fade: float = 1.0, t_rec: float = 10.0) -> Chirp:
+        """One System ID chirp from a LOITER hover: SID_AXIS axis, SID_MAGNITUDE, SID_F_START/STOP_HZ (Hz),
+        SID_T_FADE_IN/OUT and SID_T_REC (s; ArduCopter holds f_start for 2/f_start s first, so
+        t_rec must exceed that); then back to LOITER.
 
-        Axes (ArduCopter): 1-3 input roll/pitch/yaw angle, 4-6 recovery roll/pitch/yaw angle, 7-9
-        rate roll/pitch/yaw, 10-12 mixer roll/pitch/yaw, 13 mixer thrust.
+        Only the position-controlled axes (14-19: 14/15 position disturbance lateral/longitudinal in m,
+        16/17 velocity disturbance in m/s, 18/19 velocity input in m/s) run from LOITER; ArduCopter runs the
+        attitude and mixer axes (1-13) only from a manual-throttle mode. The sticks are held centred (RC
+        override) so that LOITER holds height.
         """
+        if axis not in POSITION_AXES:
+            raise UserError(f"SID_AXIS {axis}: only the position-controlled axes {POSITION_AXES} run from "
+                            "LOITER", hint="ArduCopter needs a manual-throttle mode for axes 1-13")
+        if not t_rec > 2.0 / f_start:
+            raise UserError(f"System ID: t_rec {t_rec:g} s must exceed 2/f_start = {2.0 / f_start:g} s",
+                            hint="raise f_start or t_rec")
         for name, value in (("SID_AXIS", axis), ("SID_MAGNITUDE", magnitude), ("SID_F_START_HZ", f_start),
                             ("SID_F_STOP_HZ", f_stop), ("SID_T_FADE_IN", t_fade), ("SID_T_REC", t_rec),
                             ("SID_T_FADE_OUT", t_fade)):
             self.set_param(name, value)
-        self.fly_for(0.5)
+        self.sticks_centred = True
+        self.set_mode(LOITER)
+        self.fly_for(1.0)
         start = self.sim_time
+        first_text = len(self.texts)
         self.set_mode(SYSTEMID)
-        length = t_fade + t_rec + t_fade
-        self.wait_until(lambda: self.sim_time - start > length + 0.5 or self.mode != SYSTEMID,
-                        length + 5.0, "System ID chirp")
-        self.set_mode(GUIDED)
-        return self.sim_time - start
+        length = 1.0 + t_fade + t_rec + t_fade  # ArduCopter waits 1 s after the mode change
+        self.fly_for(length + 0.5)
+        if self.mode != SYSTEMID:
+            raise FlightError(f"System ID chirp on axis {axis} ended early in mode {self.mode} "
+                              f"(last texts: {self.texts[-4:]})")
+        self.set_mode(LOITER)
+        stopped = [t for t in self.texts[first_text:] if t.startswith("SystemID Stopped")]
+        return Chirp(axis, magnitude, start, self.sim_time, stopped[0] if stopped else "")
