@@ -69,8 +69,11 @@ def throttles_from_pwm(
     return out[0], out[1], out[2], out[3]
 
 
-def _vec(values: tuple[float, ...]) -> str:
-    return "[" + ",".join(repr(float(v)) for v in values) + "]"
+_V3 = "[%.10g,%.10g,%.10g]"
+_SENSOR_LINE = (
+    '\n{"timestamp":%.6f,"imu":{"gyro":' + _V3 + ',"accel_body":' + _V3 + '},"position":' + _V3
+    + ',"velocity":' + _V3 + ',"quaternion":[%.10g,%.10g,%.10g,%.10g]}\n'
+)
 
 
 def sensor_json(
@@ -81,9 +84,7 @@ def sensor_json(
     velocity: tuple[float, float, float],
     quaternion: tuple[float, float, float, float],
 ) -> bytes:
-    """The reply line: timestamp (s), gyro FRD (rad/s), specific force FRD (m/s^2), NED position (m) and
-    velocity (m/s), attitude quaternion (w, x, y, z); compact, between newlines."""
-    return (
-        f'\n{{"timestamp":{timestamp!r},"imu":{{"gyro":{_vec(gyro)},"accel_body":{_vec(accel)}}},'
-        f'"position":{_vec(position)},"velocity":{_vec(velocity)},"quaternion":{_vec(quaternion)}}}\n'
-    ).encode("ascii")
+    """The reply line: timestamp (s, to the us), gyro FRD (rad/s), specific force FRD (m/s^2), NED position
+    (m) and velocity (m/s), attitude quaternion (w, x, y, z); 10 significant digits, compact, between
+    newlines (one % format: this runs once per 1 ms physics step)."""
+    return (_SENSOR_LINE % (timestamp, *gyro, *accel, *position, *velocity, *quaternion)).encode("ascii")

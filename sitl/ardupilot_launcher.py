@@ -79,8 +79,8 @@ def launcher_options(args) -> LauncherOptions:
         raise UserError(f"--ardupilot {folder}: no executable arducopter in it",
                         hint="give the folder of an ArduCopter SITL build (arducopter, copter.parm)")
     defaults = [folder / name for name in ("copter.parm", "copter-X.parm") if (folder / name).is_file()]
-    if not 0 <= args.instance <= 400:
-        raise UserError(f"-I must be 0..400 (ports + 10*N stay below 65536), got {args.instance}")
+    if not 0 <= args.instance <= 255:
+        raise UserError(f"-I must be 0..255 (ArduPilot keeps the instance in one byte), got {args.instance}")
     if not (math.isfinite(args.speedup) and args.speedup > 0):
         raise UserError(f"--speedup must be a positive number, got {args.speedup}")
     if args.seed is not None and args.seed < 0:

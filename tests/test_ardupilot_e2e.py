@@ -5,94 +5,20 @@ time."""
 from __future__ import annotations
 
 import os
-import random
 import re
 import signal
-import socket
 import subprocess
 import sys
-import threading
-import time
 from pathlib import Path
 
 import pytest
 
 from bridge.tlog import read_tlog
 from identification.ardupilot_flight import GUIDED, ArduCopterLink
+from quadsr.ardupilot_process import ArduPilotProcess
 from tests.conftest import REPO
 
 ARDUPILOT = REPO.parent / "shared" / "ardupilot"
-PID = re.compile(r"ArduCopter pid (\d+)")
-
-
-def free_instance() -> int:
-    """An ArduPilot instance N whose ports (TCP 5760+10N, 5762+10N, 5763+10N; UDP 9002+10N) are free now.
-    PX4 tests use 4560+N, 14540+N, 14550, 18570+N: N in 100..400 keeps ArduPilot's ports (6760-9763,
-    10002-13002) clear of them."""
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    for _ in range(100):
-        n = rng.randrange(100, 400)
-        socks = []
-        try:
-            for port in (5760 + 10 * n, 5762 + 10 * n, 5763 + 10 * n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", port))
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            socks.append(s)
-            s.bind(("127.0.0.1", 9002 + 10 * n))
-            return n
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise AssertionError("no free ArduPilot instance found")
-
-
-class Launched:
-    """`quadsr ardupilot` as a child process, its output lines collected."""
-
-    def __init__(self, tmp_path: Path, instance: int):
-        self.instance = instance
-        self.tlog = tmp_path / "truth.tlog"
-        self.workdir = tmp_path / "ap"
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "quadsr.cli", "ardupilot", "--ardupilot", str(ARDUPILOT),
-             "-I", str(instance), "--speedup", "100", "--workdir", str(self.workdir),
-             "--log", str(self.tlog), "--wipe"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.lines: list[str] = []
-        self.reader = threading.Thread(target=self._read, daemon=True)
-        self.reader.start()
-
-    def _read(self) -> None:
-        for line in self.proc.stdout:
-            self.lines.append(line.rstrip("\n"))
-
-    def wait_for(self, rx: re.Pattern, timeout: float = 60.0) -> re.Match:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            for line in list(self.lines):
-                m = rx.search(line)
-                if m:
-                    return m
-            if self.proc.poll() is not None and not self.reader.is_alive():
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"no line matching {rx.pattern!r}; output:\n" + "\n".join(self.lines[-40:]))
-
-    def stop(self) -> int:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self.reader.join(5)
-        return self.proc.returncode
 
 
 def truth_hold_error(tlog: Path, height: float, tolerance: float, hold_s: float) -> float:
@@ -114,11 +40,11 @@ def truth_hold_error(tlog: Path, height: float, tolerance: float, hold_s: float)
 
 @pytest.mark.e2e
 def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
-    launched = Launched(tmp_path, free_instance())
+    launched = ArduPilotProcess(ARDUPILOT, tmp_path / "ap", tmp_path / "truth.tlog")
     link = None
     try:
-        pid = int(launched.wait_for(PID).group(1))
-        link = ArduCopterLink(f"tcp:127.0.0.1:{5760 + 10 * launched.instance}", wall_timeout=60.0)
+        pid = launched.arducopter_pid()
+        link = ArduCopterLink(launched.mavlink, wall_timeout=60.0)
         assert link.wait_ekf_gps(sim_seconds=120.0) < 120.0
         link.set_mode(GUIDED)
         link.arm(sim_seconds=60.0)
@@ -162,3 +88,18 @@ def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     rows = int(re.search(r"(\d+) rows from 1 log", run.stdout + run.stderr).group(1))
     assert rows > 300 and model.is_file()
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--ardupilot", "/nonexistent"], "no executable arducopter"),
+        (["--ardupilot", str(ARDUPILOT), "-I", "256"], "-I must be 0..255"),
+        (["--ardupilot", str(ARDUPILOT), "--speedup", "0"], "--speedup must be a positive number"),
+        (["--ardupilot", str(ARDUPILOT), "--vehicle", "no-such-vehicle"], "not found"),
+    ],
+)
+def test_launcher_refuses_bad_input_clearly(flags, message, tmp_path):
+    run = subprocess.run([sys.executable, "-m", "quadsr.cli", "ardupilot", "--workdir", str(tmp_path), *flags],
+                         capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr, run.stderr
