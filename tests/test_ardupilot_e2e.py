@@ -100,6 +100,6 @@ def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
     ],
 )
 def test_launcher_refuses_bad_input_clearly(flags, message, tmp_path):
-    run = subprocess.run([sys.executable, "-m", "quadsr.cli", "ardupilot", "--workdir", str(tmp_path), *flags],
-                         capture_output=True, text=True, cwd=REPO, timeout=60)
+    argv = [sys.executable, "-m", "quadsr.cli", "ardupilot", "--workdir", str(tmp_path), *flags]
+    run = subprocess.run(argv, capture_output=True, text=True, cwd=REPO, timeout=60)
     assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr, run.stderr
