@@ -144,24 +144,40 @@ class ArduCopterLink:
         p = list(params) + [0.0] * (7 - len(params))
         self.conn.mav.command_long_send(self.conn.target_system, self.conn.target_component, command, 0, *p)
 
+    def release_sticks(self) -> None:
+        """Stop holding the sticks centred: RC override channels 1-8 released (0) to the RC input."""
+        self.sticks_centred = False
+        self.conn.mav.rc_channels_override_send(self.conn.target_system, self.conn.target_component,
+                                                *([0] * 8))
+
     def set_param(self, name: str, value: float) -> None:
         """PARAM_SET (float)."""
         self.conn.mav.param_set_send(self.conn.target_system, self.conn.target_component, name.encode(),
                                      float(value), mavutil.mavlink.MAV_PARAM_TYPE_REAL32)
 
-    def set_mode(self, mode: str, sim_seconds: float = 5.0) -> None:
-        """Switch flight mode and wait for the HEARTBEAT to show it."""
+    def set_mode(self, mode: str, sim_seconds: float = 10.0) -> None:
+        """Switch flight mode (asked again every 0.5 s of simulated time) until the HEARTBEAT shows it."""
         mapping = self.conn.mode_mapping()
         if mode not in mapping:
             raise UserError(f"ArduCopter has no mode {mode!r}", hint=f"modes: {', '.join(mapping)}")
         number = mapping[mode]
+        self.wait_until(self._every(0.5, lambda: self.conn.set_mode(number), lambda: self.mode == mode),
+                        sim_seconds, f"mode {mode}")
 
-        def switched() -> bool:
-            if self.mode != mode:
-                self.conn.set_mode(number)
-            return self.mode == mode
+    def _every(self, period: float, action: Callable[[], None],
+               done: Callable[[], bool]) -> Callable[[], bool]:
+        """A wait_until condition that repeats action every period s of simulated time until done()."""
+        next_try = [self.sim_time]
 
-        self.wait_until(switched, sim_seconds, f"mode {mode}")
+        def check() -> bool:
+            if done():
+                return True
+            if self.sim_time >= next_try[0]:
+                action()
+                next_try[0] = self.sim_time + period
+            return False
+
+        return check
 
     def wait_ekf_gps(self, sim_seconds: float = 120.0) -> float:
         """Wait until the EKF uses GPS for horizontal and vertical position; return the simulated time (s)."""
@@ -172,15 +188,10 @@ class ArduCopterLink:
 
     def arm(self, sim_seconds: float = 120.0) -> float:
         """Arm (retried every 2 s of simulated time while pre-arm checks refuse); return the sim time."""
-        next_try = [self.sim_time]
-
-        def armed() -> bool:
-            if not self.armed and self.sim_time >= next_try[0]:
-                self.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
-                next_try[0] = self.sim_time + 2.0
-            return self.armed
-
-        self.wait_until(armed, sim_seconds, "arming")
+        self.release_sticks()  # ArduCopter refuses to arm with the throttle stick above its minimum
+        arm = self._every(2.0, lambda: self.command(mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1),
+                          lambda: self.armed)
+        self.wait_until(arm, sim_seconds, "arming")
         return self.sim_time
 
     def takeoff(self, height: float, sim_seconds: float = 30.0, tolerance: float = 0.15) -> float:

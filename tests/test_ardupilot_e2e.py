@@ -19,6 +19,16 @@ from quadsr.ardupilot_process import ArduPilotProcess
 from tests.conftest import REPO
 
 ARDUPILOT = REPO.parent / "shared" / "ardupilot"
+HELD_OUT_ROW = re.compile(r"^\| \S+ \((\w+)\) \| [^|]+ \| [^|]+ \| ([-\d.]+) \|$", re.MULTILINE)
+
+
+def identify(log: Path, model: Path, *extra: str) -> subprocess.CompletedProcess:
+    """`quadsr identify LOG -o MODEL` (sparse engine, small budget); fails the test when it fails."""
+    run = subprocess.run([sys.executable, "-m", "quadsr.cli", "identify", str(log), "-o", str(model),
+                          "--engine", "sparse", "--budget", "20", "--seed", "0", "--no-progress", *extra],
+                         capture_output=True, text=True, cwd=REPO, timeout=240)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    return run
 
 
 def truth_hold_error(tlog: Path, height: float, tolerance: float, hold_s: float) -> float:
@@ -39,7 +49,7 @@ def truth_hold_error(tlog: Path, height: float, tolerance: float, hold_s: float)
 
 
 @pytest.mark.e2e
-def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
+def test_arducopter_flies_the_sitl_is_identified_and_dies_mid_flight(tmp_path):
     launched = ArduPilotProcess(ARDUPILOT, tmp_path / "ap", tmp_path / "truth.tlog")
     link = None
     try:
@@ -54,6 +64,9 @@ def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
         north, east, _ = link.track.ned[-1]
         link.fly_for(10.0)
         estimate_error = link.hold_error(start, (north, east, -5.0))
+        # ArduCopter's own System ID mode: one chirp of the lateral velocity input, from LOITER
+        chirp = link.system_id(18, 0.5, f_start=0.5, f_stop=2.0, t_fade=0.5, t_rec=5.0)
+        assert chirp.stopped == "" and chirp.end - chirp.start > 7.0
         link.land(sim_seconds=60.0)
         assert not link.armed
         assert estimate_error < 0.15, f"ArduPilot's estimate held within {estimate_error:.3f} m"
@@ -78,16 +91,20 @@ def test_arducopter_flies_the_sitl_then_dies_mid_flight(tmp_path):
     sitl_exit = [line for line in launched.lines if line.endswith("(exit)")][-1]
     assert "bad_magic=0 bad_size=0" in sitl_exit and "restarts=0" in sitl_exit
 
-    # the flight's DataFlash log (the first arming: closed at its disarm) through quadsr identify
+    # the truth .tlog of the ArduPilot-flown flights through quadsr identify: the held-out fit is close
+    run = identify(launched.tlog, tmp_path / "model-tlog.yaml")
+    r2 = {m.group(1): float(m.group(2)) for m in HELD_OUT_ROW.finditer(run.stdout + run.stderr)}
+    assert set(r2) == {"ax", "ay", "az", "dwx", "dwy", "dwz"} and min(r2.values()) > 0.99, r2
+
+    # the flight's DataFlash log (the first arming: closed at its disarm) through quadsr identify. Its rows
+    # follow ATT (10 Hz by default); while in SYSTEMID ArduCopter logs RATE faster, and the reader finds no
+    # derivative window across the change of rate, so the chirp's stretch gives few rows.
     logs = sorted((launched.workdir / "logs").glob("*.BIN"))
     assert logs, "ArduCopter wrote no DataFlash log"
-    model = tmp_path / "model.yaml"
-    run = subprocess.run([sys.executable, "-m", "quadsr.cli", "identify", str(logs[0]), "-o", str(model),
-                          "--motor-curve", "fang-chen-buaa", "--engine", "sparse", "--budget", "20",
-                          "--seed", "0"], capture_output=True, text=True, cwd=REPO, timeout=240)
-    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    model = tmp_path / "model-bin.yaml"
+    run = identify(logs[0], model, "--motor-curve", "fang-chen-buaa")
     rows = int(re.search(r"(\d+) rows from 1 log", run.stdout + run.stderr).group(1))
-    assert rows > 300 and model.is_file()
+    assert rows >= 50 and model.is_file()
 
 
 @pytest.mark.parametrize(
