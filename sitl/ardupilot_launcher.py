@@ -221,9 +221,10 @@ class Launcher:
             copter = _Child("ArduCopter", self.arducopter_argv(parm), o.workdir, signal.SIGKILL, self.out,
                             prefix="arducopter: ")
             p = o.mavlink_port
-            self._say(f"ArduCopter pid {copter.proc.pid} in {o.workdir}; MAVLink tcp:127.0.0.1:{p} "
-                      f"(SERIAL0), tcp:127.0.0.1:{p + 2}, tcp:127.0.0.1:{p + 3}; JSON physics "
-                      f"udp:127.0.0.1:{o.json_port}; DataFlash logs in {o.workdir / 'logs'}; Ctrl-C stops")
+            self._say(f"ArduCopter pid {copter.proc.pid} (SITL pid {sitl.proc.pid}) in {o.workdir}; "
+                      f"MAVLink tcp:127.0.0.1:{p} (SERIAL0), tcp:127.0.0.1:{p + 2}, tcp:127.0.0.1:{p + 3}; "
+                      f"JSON physics udp:127.0.0.1:{o.json_port}; DataFlash logs in {o.workdir / 'logs'}; "
+                      "Ctrl-C stops")
             code = self._watch(sitl, copter)
         finally:
             if copter is not None:

@@ -9,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,7 @@ from quadsr.ardupilot_process import ArduPilotProcess
 from tests.conftest import REPO
 
 ARDUPILOT = REPO.parent / "shared" / "ardupilot"
+CHILD_PIDS = re.compile(r"ArduCopter pid (\d+) \(SITL pid (\d+)\)")
 HELD_OUT_ROW = re.compile(r"^\| \S+ \((\w+)\) \| [^|]+ \| [^|]+ \| ([-\d.]+) \|$", re.MULTILINE)
 
 
@@ -120,3 +122,47 @@ def test_launcher_refuses_bad_input_clearly(flags, message, tmp_path):
     argv = [sys.executable, "-m", "quadsr.cli", "ardupilot", "--workdir", str(tmp_path), *flags]
     run = subprocess.run(argv, capture_output=True, text=True, cwd=REPO, timeout=60)
     assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as f:  # a zombie (exited, not yet reaped) counts as dead
+        return f.read().split(") ")[-1][0] != "Z"
+
+
+def _wait_dead(pids: list[int], timeout: float = 20.0) -> list[int]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and any(_alive(p) for p in pids):
+        time.sleep(0.05)
+    return [p for p in pids if _alive(p)]
+
+
+@pytest.mark.e2e
+def test_launcher_stops_both_on_sigint_and_its_children_die_with_it(tmp_path):
+    first = ArduPilotProcess(ARDUPILOT, tmp_path / "a", tmp_path / "a.tlog")
+    try:
+        m = first.wait_for(CHILD_PIDS)
+        pids = [int(m.group(1)), int(m.group(2))]
+        first.wait_for(re.compile(r"JSON received"))  # ArduCopter is stepping the physics
+        first.proc.send_signal(signal.SIGINT)
+        assert first.proc.wait(30) == 0
+    finally:
+        first.stop()
+    out = "\n".join(first.lines)
+    assert "stopping ArduCopter and the SITL" in out and "(exit)" in out and "Traceback" not in out
+    assert _wait_dead(pids) == []
+
+    # the launcher killed outright: ArduCopter (PR_SET_PDEATHSIG) and the SITL go with it
+    second = ArduPilotProcess(ARDUPILOT, tmp_path / "b", tmp_path / "b.tlog")
+    try:
+        m = second.wait_for(CHILD_PIDS)
+        pids = [int(m.group(1)), int(m.group(2))]
+        second.wait_for(re.compile(r"JSON received"))
+        second.proc.kill()
+        second.proc.wait(30)
+        assert _wait_dead(pids) == []
+    finally:
+        second.stop()
