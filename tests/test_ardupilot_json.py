@@ -146,3 +146,19 @@ def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
     ds = read_tlog_dataset(log)
     assert len(ds.t) > 50
     assert ds.u[:, 0].max() == pytest.approx(600.0, rel=0.02)  # true rotor speeds settle at 600 rad/s
+
+
+def test_one_millisecond_steps_track_the_four_millisecond_physics():
+    v = load_vehicle("fang-chen-buaa")
+    fine, coarse = Quadrotor(v, 1000), Quadrotor(v)
+    throttle = (0.75, 0.74, 0.76, 0.75)  # above hover, a little roll, pitch and yaw
+    for _ in range(250):
+        coarse.step(throttle)
+        for _ in range(4):
+            fine.step(throttle)
+    assert fine.time_usec == coarse.time_usec == 1_000_000
+    assert fine.position == pytest.approx(coarse.position, rel=0.01, abs=1e-3)  # RK4, 4 ms vs 1 ms
+    assert fine.rates == pytest.approx(coarse.rates, abs=1e-5)
+    assert coarse.position[2] < -0.5  # it climbed
+    with pytest.raises(ValueError, match="divide"):
+        Quadrotor(v, 1500)
