@@ -136,6 +136,12 @@ def ardupilot_options(args: argparse.Namespace, sitl: SitlOptions) -> ArduPilotO
     from bridge.link import parse_endpoint
     from sitl.ardupilot_server import ArduPilotOptions
 
+    for flag, given in (("--mode realtime", args.mode != "lockstep"), ("--signing-key", args.signing_key),
+                        ("--offboard", args.offboard)):
+        if given:
+            raise UserError(f"{flag} does not apply with --ardupilot (ArduPilot steps the physics in "
+                            "lockstep over its JSON interface and serves MAVLink itself)",
+                            hint=f"drop {flag.split()[0]}")
     return ArduPilotOptions(
         vehicle=sitl.vehicle,
         endpoint=parse_endpoint(args.ardupilot),

@@ -6,10 +6,13 @@ from __future__ import annotations
 import json
 import re
 import socket
+import subprocess
+import sys
 
 import pytest
 
 from bridge.vehicle import load_vehicle
+from identification.readers.tlog import read_tlog_dataset
 from sitl.ardupilot_json import (
     MAGIC_16,
     MAGIC_32,
@@ -20,6 +23,7 @@ from sitl.ardupilot_json import (
     throttles_from_pwm,
 )
 from sitl.dynamics import Quadrotor
+from tests.conftest import REPO
 
 LISTENING = re.compile(r"listening for ArduPilot on udp:([\d.]+):(\d+)")
 HOVER_PWM = 1000 + round(1000 * load_vehicle("fang-chen-buaa").motor_curve.throttle_for_speed(600.0))
@@ -88,11 +92,6 @@ class ArduPilotStandIn:
 
 @pytest.mark.e2e
 def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
-    import subprocess
-    import sys
-
-    from tests.conftest import REPO
-
     log = tmp_path / "truth.tlog"
     proc = subprocess.Popen(
         [sys.executable, "-m", "quadsr.cli", "sitl", "--ardupilot", "udp:127.0.0.1:0", "--log", str(log),
@@ -141,8 +140,6 @@ def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
     assert "Traceback" not in out
 
     # the truth .tlog reads like any quadsr flight: steps on the 4 ms grid with the commands
-    from identification.readers.tlog import read_tlog_dataset
-
     ds = read_tlog_dataset(log)
     assert len(ds.t) > 50
     assert ds.u[:, 0].max() == pytest.approx(600.0, rel=0.02)  # true rotor speeds settle at 600 rad/s
@@ -162,3 +159,17 @@ def test_one_millisecond_steps_track_the_four_millisecond_physics():
     assert coarse.position[2] < -0.5  # it climbed
     with pytest.raises(ValueError, match="divide"):
         Quadrotor(v, 1500)
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--ardupilot", "udp:127.0.0.1"], "bad link address"),
+        (["--ardupilot", "--mode", "realtime"], "--mode realtime does not apply with --ardupilot"),
+        (["--ardupilot", "--offboard", "udp:127.0.0.1:14540"], "--offboard does not apply"),
+    ],
+)
+def test_sitl_ardupilot_refuses_bad_flags(flags, message):
+    run = subprocess.run([sys.executable, "-m", "quadsr.cli", "sitl", *flags], capture_output=True, text=True,
+                         cwd=REPO, timeout=60)
+    assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr, run.stderr
