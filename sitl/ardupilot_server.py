@@ -3,8 +3,9 @@
 Lockstep with ArduPilot's frame_count: a new frame steps the physics 1 ms with the packet's PWM (through
 the vehicle's PWM range and motor curve) and is answered with the new state; the same frame again (ArduPilot
 re-sends after about 1.1 s without an answer) gets the last answer again without stepping; a frame_count
-going back is a restarted ArduPilot: the vehicle is put back at its start and time restarts (ArduPilot takes
-the falling timestamp as a physics reset). Packets with a wrong magic or size are dropped and counted.
+going back, or frames from a new source address (another ArduPilot process), is a restarted ArduPilot:
+the vehicle is put back at its start and time restarts (ArduPilot takes the falling timestamp as a
+physics reset). Packets with a wrong magic or size are dropped and counted.
 The first answer carries timestamp 0.001 s: ArduPilot's clock advances by differences of timestamps.
 
 The truth .tlog holds what `quadsr sitl --log` writes for a HIL flight (the step frames of sitl.hil, from
@@ -134,18 +135,21 @@ class ArduPilotServer:
                 stats.bad_size += 1
             return None
         stats.packets += 1
-        if sender != self.peer:
+        new_sender = sender != self.peer
+        if new_sender:
             stats.senders += 1
             self.peer = sender
         count = packet.frame_count
         last = self.last_count
-        if last is not None and count == last:
+        if last is not None and count == last and not new_sender:
             stats.resent += 1
             return self.last_reply
-        if last is not None and count < last:
+        if last is not None and (count < last or new_sender):
+            # frame_count going back, or another ArduPilot process (a new source port): a restart
             stats.restarts += 1
-            self._say(f"quadsr sitl: ArduPilot restarted (frame {count} after {last}) at "
-                      f"t={self.quad.time_usec * 1e-6:.3f}s: vehicle reset to its start")
+            why = f"frame {count} after {last}" if count < last else f"a new sender {sender[0]}:{sender[1]}"
+            self._say(f"quadsr sitl: ArduPilot restarted ({why}) at t={self.quad.time_usec * 1e-6:.3f}s: "
+                      "vehicle reset to its start")
             self._reset()
         elif last is not None and count > last + 1:
             stats.missed += count - last - 1

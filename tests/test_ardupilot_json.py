@@ -127,6 +127,12 @@ def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
         again = ap.frame(0, (1000,) * 4)
         assert again["timestamp"] == pytest.approx(0.001) and again["position"][2] == pytest.approx(0.0)
         ap.frame(1, (1000,) * 4)
+        # another ArduPilot process (a new source port), whatever its frame_count: a restart too
+        other = ArduPilotStandIn(port)
+        try:
+            assert other.frame(5000, (1000,) * 4)["timestamp"] == pytest.approx(0.001)
+        finally:
+            other.close()
     finally:
         if ap is not None:
             ap.close()
@@ -135,7 +141,9 @@ def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
     assert proc.returncode == 0, out
     assert "ArduPilot restarted (frame 0 after 402)" in out
     exit_line = [line for line in out.splitlines() if line.endswith("(exit)")][-1]
-    for counter in ("packets=404", "resent=1", "missed=2", "restarts=1", "bad_magic=1", "bad_size=2"):
+    assert "ArduPilot restarted (a new sender 127.0.0.1:" in out
+    for counter in ("packets=405", "resent=1", "missed=2", "restarts=2", "bad_magic=1", "bad_size=2",
+                    "senders=2"):
         assert counter in exit_line, exit_line
     assert "Traceback" not in out
 
