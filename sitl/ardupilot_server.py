@@ -61,7 +61,7 @@ class ServoStats:
     packets: int = 0  # servo packets received (good ones)
     resent: int = 0  # the same frame_count again: answered with the last reply, no step
     missed: int = 0  # frame_count jumped forward by more than 1: frames never received
-    restarts: int = 0  # frame_count went back: ArduPilot restarted, the vehicle was reset
+    restarts: int = 0  # frame_count went back or a new sender: ArduPilot restarted, the vehicle was reset
     bad_magic: int = 0  # dropped: not a servo packet magic
     bad_size: int = 0  # dropped: wrong length for its magic
     senders: int = 0  # distinct ArduPilot addresses seen
@@ -96,7 +96,6 @@ class ArduPilotServer:
         self.last_count: int | None = None
         self.last_reply = b""
         self.peer: tuple[str, int] | None = None
-        self.tlog = TlogWriter(options.log) if options.log else None
         self._state = HilEncoder(v.home, _Sequence(SYSTEM_ID, HIL_COMPONENT_ID))  # type: ignore[arg-type]
         autopilot = _Sequence(SYSTEM_ID, AUTOPILOT_COMPONENT_ID)
         self._commands = Framer(SYSTEM_ID, AUTOPILOT_COMPONENT_ID, autopilot)
@@ -108,6 +107,11 @@ class ArduPilotServer:
             raise UserError(f"--ardupilot {options.endpoint}: cannot listen there ({exc.strerror})",
                             hint="is another simulator there? use another port or -I N") from None
         self.port = self.sock.getsockname()[1]
+        try:
+            self.tlog = TlogWriter(options.log) if options.log else None
+        except UserError:
+            self.sock.close()
+            raise
         self._stop = False
         self._silent_said = False
         self._reset()
