@@ -4,6 +4,7 @@ Two sessions of `quadsr ardupilot` (ArduCopter from ../shared/ardupilot, --speed
 EKF on GPS, arm in GUIDED, take off to 5 m, hold 10 s, then ArduCopter's own System ID chirps from LOITER
 (position-controlled axes: 18 and 19 = velocity input lateral/longitudinal), land, disarm. The first is the
 training flight, the second (other magnitudes and frequencies) the validation flight. Printed:
+- the ceiling: ArduCopter's frames per second against a stationary responder (no physics) now;
 - the real-time factor in flight (ArduCopter's simulated seconds per wall second, take-off to landing);
 - the hover hold: largest distance from the point 5 m above take-off over 10 s, in ArduPilot's estimate
   and in the truth (.tlog);
@@ -20,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -99,6 +102,41 @@ def fly(name: str, args, out: Path) -> dict:
             "bin": bins[0] if bins else None, "chirps": chirps}
 
 
+def ceiling(ardupilot: Path, out: Path, wall_s: float = 15.0) -> float:
+    """Frames per wall second ArduCopter runs against a stationary responder (a fixed JSON line, no physics,
+    no sensors): the most any JSON physics can get from it on this machine now."""
+    from quadsr.ardupilot_process import free_instance
+    from sitl.ardupilot_json import sensor_json
+    from sitl.ardupilot_launcher import die_with_parent
+
+    n = free_instance()
+    folder = out / "ceiling"
+    folder.mkdir(parents=True, exist_ok=True)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 9002 + 10 * n))
+    sock.settimeout(10.0)
+    defaults = ",".join(str(ardupilot / f) for f in ("copter.parm", "copter-X.parm"))
+    proc = subprocess.Popen([str(ardupilot / "arducopter"), "--model", "JSON:127.0.0.1", "--speedup", "100",
+                             "--serial0", "tcp:0", "-I", str(n), "--defaults", defaults], cwd=folder,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=lambda: die_with_parent(signal.SIGKILL))  # noqa: PLW1509
+    try:
+        total, frames, t0, end = 0, 0, 0.0, time.monotonic() + wall_s
+        while time.monotonic() < end:
+            _, sender = sock.recvfrom(256)
+            total += 1
+            frames += 1
+            if total == 2000:  # past ArduCopter's start-up
+                t0, frames = time.monotonic(), 0
+            sock.sendto(sensor_json(total * 0.001, (0.0, 0.0, 0.0), (0.0, 0.0, -9.80665),
+                                    (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)), sender)
+        return frames / (time.monotonic() - t0) if t0 else 0.0
+    finally:
+        proc.kill()
+        proc.wait()
+        sock.close()
+
+
 def quadsr(*argv: str) -> str:
     """Run a quadsr subcommand; its output (RuntimeError when it fails)."""
     run = subprocess.run([sys.executable, "-m", "quadsr.cli", *argv], capture_output=True, text=True,
@@ -139,6 +177,9 @@ def main() -> int:
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ardupilot-loop-"))
     out.mkdir(parents=True, exist_ok=True)
     print(f"bench/ardupilot_loop.py: ArduCopter from {args.ardupilot}, --speedup {args.speedup:g}, out {out}")
+    top = ceiling(Path(args.ardupilot), out)
+    print(f"ceiling: ArduCopter against a stationary responder runs {top:.0f} frames/s (1 ms each: a "
+          f"real-time factor of {top * 0.001:.1f}) on this machine now", flush=True)
     flights = {}
     for name in ("train", "validate"):
         f = fly(name, args, out)
