@@ -3,14 +3,18 @@
 
 from __future__ import annotations
 
+import io
 import json
 import re
 import socket
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 
+from bridge.link import Endpoint
 from bridge.vehicle import load_vehicle
 from identification.readers.tlog import read_tlog_dataset
 from sitl.ardupilot_json import (
@@ -22,6 +26,7 @@ from sitl.ardupilot_json import (
     sensor_json,
     throttles_from_pwm,
 )
+from sitl.ardupilot_server import ArduPilotOptions, ArduPilotServer
 from sitl.dynamics import Quadrotor
 from tests.conftest import REPO
 
@@ -181,3 +186,28 @@ def test_sitl_ardupilot_refuses_bad_flags(flags, message):
     run = subprocess.run([sys.executable, "-m", "quadsr.cli", "sitl", *flags], capture_output=True, text=True,
                          cwd=REPO, timeout=60)
     assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+def test_server_says_when_ardupilot_falls_silent():
+    out = io.StringIO()
+    server = ArduPilotServer(ArduPilotOptions(vehicle=load_vehicle("fang-chen-buaa"),
+                                              endpoint=Endpoint("127.0.0.1", 0), status_interval=0,
+                                              silence_timeout=0.3), out=out)
+    ap = ArduPilotStandIn(server.port)
+
+    def ardupilot_then_silence():
+        for k in range(10):
+            ap.frame(k, (1500,) * 4)
+        deadline = time.monotonic() + 20.0  # a failure bound only: the message comes 0.3 s after the last
+        while "silent" not in out.getvalue() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        server._stop = True
+
+    sender = threading.Thread(target=ardupilot_then_silence, daemon=True)
+    sender.start()
+    assert server.run() == 0  # in the main thread: it installs its signal handlers
+    sender.join(5)
+    ap.close()
+    text = out.getvalue()
+    assert "ArduPilot silent for 0.3 s at t=0.010s (frame 9): stopped or killed?" in text, text
+    assert text.count("silent") == 1 and text.rstrip().endswith("(exit)")
