@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--vehicle", default=DEFAULT_VEHICLE, metavar="FILE|NAME",
                    help=f"vehicle YAML file or bundled name (default {DEFAULT_VEHICLE})")
     p.add_argument("-I", "--instance", type=int, default=0, metavar="N",
-                   help="ArduPilot instance: every port + 10*N (MAVLink TCP 5760+10N, JSON UDP 9002+10N)")
+                   help="ArduPilot instance 0..255: ports + 10*N (MAVLink TCP 5760+10N, JSON UDP 9002+10N)")
     p.add_argument("--speedup", type=float, default=1.0, metavar="X",
                    help="ArduPilot's --speedup: simulated seconds per wall second it aims for (default 1)")
     p.add_argument("--workdir", default=None, metavar="DIR",
