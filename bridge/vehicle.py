@@ -118,6 +118,8 @@ class MotorConfig:
     rotor_inertia: float  # Jm, kg m^2 (rotor + motor bell about the shaft, for the gyroscopic torque)
     curve: MotorCurve | None = None  # the throttle curve when not the linear one of curve_slope/curve_offset
     speed_noise: float = 0.0  # rad/s, std of white noise on each commanded rotor speed (0: off)
+    pwm_min: float = 1000.0  # us, the ESC pulse of throttle 0 (an autopilot's PWM output, e.g. ArduPilot's)
+    pwm_max: float = 2000.0  # us, the ESC pulse of throttle 1
 
 
 @dataclass(frozen=True)
@@ -515,8 +517,14 @@ def _parse_motor(ms: Section) -> MotorConfig:
         rotor_inertia=ms.number("rotor_inertia", nonnegative=True),
         curve=curve,
         speed_noise=ms.number("speed_noise", nonnegative=True, default=0.0),
+        pwm_min=ms.number("pwm_min", positive=True, default=1000.0),
+        pwm_max=ms.number("pwm_max", positive=True, default=2000.0),
     )
     ms.done()
+    if not motor.pwm_min < motor.pwm_max <= 65535:
+        raise UserError(f"{where}: keys 'motor.pwm_min' < 'motor.pwm_max' <= 65535 us are required, got "
+                        f"{motor.pwm_min:g} and {motor.pwm_max:g}",
+                        hint="the usual ESC range is 1000 to 2000 us")
     return motor
 
 

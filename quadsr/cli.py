@@ -13,6 +13,7 @@ from quadsr import __version__
 # A subcommand's func takes the parsed args and returns an exit code.
 COMMAND_MODULES = (
     "sitl.cli",
+    "sitl.ardupilot_cli",
     "identification.cli",
     "controller.cli",
     "quadsr.pipeline_cli",

@@ -13,11 +13,13 @@ from bridge.errors import UserError
 if TYPE_CHECKING:
     from bridge.airframe import WindConfig
     from bridge.vehicle import VehicleConfig
+    from sitl.ardupilot_server import ArduPilotOptions
     from sitl.server import SitlOptions
 
 DEFAULT_VEHICLE = "fang-chen-buaa"
 DEFAULT_HIL = "udp:127.0.0.1:4560"
 DEFAULT_GCS = "udp:127.0.0.1:14550"
+DEFAULT_ARDUPILOT = "udp:127.0.0.1:9002"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -75,6 +77,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-steps", type=int, default=None, metavar="N", help="exit after N steps")
     p.add_argument("--companion-sysid", type=int, default=1, metavar="ID",
                    help="system id the companion sends from (default 1); other ids are dropped")
+    p.add_argument("--ardupilot", nargs="?", const=DEFAULT_ARDUPILOT, default=None, metavar="udp:HOST:PORT",
+                   help="be ArduPilot's JSON physics instead of PX4's HIL simulator: listen for its servo "
+                        f"packets there (default {DEFAULT_ARDUPILOT}; 9002+10*N for arducopter -I N)")
     p.set_defaults(func=run)
 
 
@@ -133,8 +138,33 @@ def run(args: argparse.Namespace) -> int:
     from sitl.server import SitlServer
 
     options = options_from_args(args)
+    if args.ardupilot is not None:
+        from sitl.ardupilot_server import ArduPilotServer
+
+        return ArduPilotServer(ardupilot_options(args, options)).run()
     server = SitlServer(options)
     return server.run()
+
+
+def ardupilot_options(args: argparse.Namespace, sitl: SitlOptions) -> ArduPilotOptions:
+    """The JSON-physics server's options: --ardupilot's address plus the SITL flags that apply to it."""
+    from bridge.link import parse_endpoint
+    from sitl.ardupilot_server import ArduPilotOptions
+
+    for flag, given in (("--mode realtime", args.mode != "lockstep"), ("--signing-key", args.signing_key),
+                        ("--offboard", args.offboard)):
+        if given:
+            raise UserError(f"{flag} does not apply with --ardupilot (ArduPilot steps the physics in "
+                            "lockstep over its JSON interface and serves MAVLink itself)",
+                            hint=f"drop {flag.split()[0]}")
+    return ArduPilotOptions(
+        vehicle=sitl.vehicle,
+        endpoint=parse_endpoint(args.ardupilot),
+        log=sitl.log,
+        initial_rotor_speed=sitl.initial_rotor_speed,
+        status_interval=sitl.status_interval,
+        max_steps=sitl.max_steps,
+    )
 
 
 def _numbers(text: str, what: str, count: int, flag: str, example: str) -> tuple[float, ...]:

@@ -122,15 +122,19 @@ def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
 
 
 class Quadrotor:
-    """A simulated quadrotor: reset it, then step(throttles) advances one 4 ms exchange step."""
+    """A simulated quadrotor: reset it, then step(throttles) advances one exchange step (4 ms by default;
+    step_usec, a divisor of 4000 us, for a simulator that steps faster, as ArduPilot's JSON one does)."""
 
-    def __init__(self, vehicle: VehicleConfig):
+    def __init__(self, vehicle: VehicleConfig, step_usec: int = EXCHANGE_STEP_USEC):
+        if step_usec <= 0 or EXCHANGE_STEP_USEC % step_usec:
+            raise ValueError(f"step_usec must divide {EXCHANGE_STEP_USEC} us, got {step_usec}")
+        self.step_usec = step_usec
         self.vehicle = vehicle
         self.motors = Motors(vehicle)
         self.mixer = QuadXMixer(vehicle)
         self.ground = make_ground(vehicle.ground)
         self.substeps = vehicle.simulation.substeps
-        self.h = EXCHANGE_STEP / self.substeps
+        self.h = EXCHANGE_STEP / self.substeps * (step_usec / EXCHANGE_STEP_USEC)
         self._g = vehicle.gravity
         self._inv_m = 1.0 / vehicle.mass
         self._cd = vehicle.drag.body_quadratic
@@ -200,7 +204,7 @@ class Quadrotor:
     # Stepping
 
     def step(self, throttles: Sequence[float]) -> None:
-        """Advance one 4 ms exchange step holding four motor throttles in [0, 1] (PX4 order)."""
+        """Advance one exchange step (4 ms unless step_usec) holding four throttles in [0, 1] (PX4 order)."""
         cmd = self.motors.commanded_speeds(throttles)
         self._cmd = cmd
         h = self.h
@@ -217,7 +221,7 @@ class Quadrotor:
             s[9] = qz * n
             self._on_ground = apply_ground(s)
         self._s = s
-        self._time_usec += EXCHANGE_STEP_USEC
+        self._time_usec += self.step_usec
         if self._wind_model is not None:  # the wind over the next step, reported with this step's telemetry
             self._wind[:] = self._wind_model.sample(self._time_usec * 1e-6)
 
@@ -243,7 +247,7 @@ class Quadrotor:
 
     @property
     def time_usec(self) -> int:
-        """Simulated time since reset, integer microseconds (a multiple of 4000)."""
+        """Simulated time since reset, integer microseconds (a multiple of step_usec, 4000 by default)."""
         return self._time_usec
 
     @property

@@ -1,0 +1,218 @@
+"""The real ArduCopter in the loop with quadsr's SITL (its JSON physics): speed, hover hold, identification.
+
+Two sessions of `quadsr ardupilot` (ArduCopter from ../shared/ardupilot, --speedup, a free instance), each:
+EKF on GPS, arm in GUIDED, take off to 5 m, hold 10 s, then ArduCopter's own System ID chirps from LOITER
+(position-controlled axes: 18 and 19 = velocity input lateral/longitudinal), land, disarm. The first is the
+training flight, the second (other magnitudes and frequencies) the validation flight. Printed:
+- the ceiling: ArduCopter's frames per second against a stationary responder (no physics) now;
+- the real-time factor in flight (ArduCopter's simulated seconds per wall second, take-off to landing);
+- the hover hold: largest distance from the point 5 m above take-off over 10 s, in ArduPilot's estimate
+  and in the truth (.tlog);
+- identification: `quadsr identify` on the training flight's truth .tlog and on its DataFlash log, then
+  `quadsr validate` on the validation flight's: R^2 per target.
+
+PASS lines: real-time factor >= 5 (the issue's floor with --speedup on 2 cores), hold within 0.15 m in both,
+R^2 >= 0.99 for every target from the truth .tlog.
+
+Usage: python bench/ardupilot_loop.py [--ardupilot DIR] [--speedup 100] [--out DIR] [--budget 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from bridge.tlog import read_tlog  # noqa: E402
+from identification.ardupilot_flight import GUIDED, ArduCopterLink  # noqa: E402
+from quadsr.ardupilot_process import ArduPilotProcess  # noqa: E402
+
+HEIGHT = 5.0  # m
+HOLD_S = 10.0  # s simulated
+TARGETS = ("ax", "ay", "az", "dwx", "dwy", "dwz")
+ROW = re.compile(r"^\| \S+ \((\w+)\) \| ([^|]+) \| ([^|]+) \| ([^|]+) \|")
+# (axis, magnitude m/s, f_start Hz, f_stop Hz) per flight
+CHIRPS = {
+    "train": [(18, 0.7, 0.5, 2.0), (19, 0.7, 0.5, 2.0)],
+    "validate": [(19, 0.5, 0.6, 2.5), (18, 0.5, 0.6, 2.5)],
+}
+# ATT and RATE at the loop rate (LOG_BITMASK bit 0, ATTITUDE_FAST, on ArduCopter's default 176126)
+LOG_PARAMS = "LOG_BITMASK 176127\n"
+
+
+def truth_hold(tlog: Path, start: float, seconds: float, target_height: float) -> float:
+    """Largest distance (m) of the true position from the take-off point raised by target_height, over the
+    truth's own [start, start + seconds] (simulated s of the SITL)."""
+    truth = [(m.time_boot_ms * 1e-3, (m.x, m.y, m.z)) for _, m in read_tlog(tlog)
+             if m.get_type() == "LOCAL_POSITION_NED" and m.get_srcComponent() == 51]
+    x0, y0, _ = truth[0][1]
+    return max(((p[0] - x0) ** 2 + (p[1] - y0) ** 2 + (p[2] + target_height) ** 2) ** 0.5
+               for t, p in truth if start <= t <= start + seconds)
+
+
+def truth_time_at_height(tlog: Path, height: float, tolerance: float) -> float:
+    """The SITL's simulated time (s) when the truth first came within tolerance m of height (up)."""
+    for _, m in read_tlog(tlog):
+        truth = m.get_type() == "LOCAL_POSITION_NED" and m.get_srcComponent() == 51
+        if truth and abs(-m.z - height) < tolerance:
+            return m.time_boot_ms * 1e-3
+    raise RuntimeError("the truth never reached the take-off height")
+
+
+def fly(name: str, args, out: Path) -> dict:
+    """One session: take-off, hold, chirps, landing. Returns its figures and file paths."""
+    extra_parm = out / "log-fast.parm"
+    extra_parm.write_text(LOG_PARAMS)
+    tlog = out / f"{name}.tlog"
+    ap = ArduPilotProcess(Path(args.ardupilot), out / f"ap-{name}", tlog, speedup=args.speedup,
+                          extra=["--param", str(extra_parm), "--sensors", "realistic"])
+    try:
+        ap.arducopter_pid()
+        link = ArduCopterLink(ap.mavlink, wall_timeout=120.0)
+        ekf = link.wait_ekf_gps(180.0)
+        link.set_mode(GUIDED)
+        link.arm(60.0)
+        wall0, sim0 = time.monotonic(), link.sim_time
+        link.takeoff(HEIGHT, 40.0, 0.15)
+        link.fly_for(3.0)
+        start = link.sim_time
+        north, east, _ = link.track.ned[-1]
+        link.fly_for(HOLD_S)
+        estimate = link.hold_error(start, (north, east, -HEIGHT))
+        chirps = [link.system_id(axis, mag, f0, f1, t_fade=1.0, t_rec=10.0)
+                  for axis, mag, f0, f1 in CHIRPS[name]]
+        link.land(90.0)
+        rtf = (link.sim_time - sim0) / (time.monotonic() - wall0)
+        link.close()
+    finally:
+        ap.stop()
+    reached = truth_time_at_height(tlog, HEIGHT, 0.15)
+    truth = truth_hold(tlog, reached + 3.0, HOLD_S, HEIGHT)
+    bins = sorted((out / f"ap-{name}" / "logs").glob("*.BIN"))
+    return {"ekf_s": ekf, "rtf": rtf, "estimate_hold_m": estimate, "truth_hold_m": truth, "tlog": tlog,
+            "bin": bins[0] if bins else None, "chirps": chirps}
+
+
+def ceiling(ardupilot: Path, out: Path, wall_s: float = 15.0) -> float:
+    """Frames per wall second ArduCopter runs against a stationary responder (a fixed JSON line, no physics,
+    no sensors): the most any JSON physics can get from it on this machine now."""
+    from quadsr.ardupilot_process import free_instance
+    from sitl.ardupilot_json import sensor_json
+    from sitl.ardupilot_launcher import die_with_parent
+
+    n = free_instance()
+    folder = out / "ceiling"
+    folder.mkdir(parents=True, exist_ok=True)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 9002 + 10 * n))
+    sock.settimeout(10.0)
+    defaults = ",".join(str(ardupilot / f) for f in ("copter.parm", "copter-X.parm"))
+    proc = subprocess.Popen([str(ardupilot / "arducopter"), "--model", "JSON:127.0.0.1", "--speedup", "100",
+                             "--serial0", "tcp:0", "-I", str(n), "--defaults", defaults], cwd=folder,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=lambda: die_with_parent(signal.SIGKILL))  # noqa: PLW1509
+    try:
+        total, frames, t0, end = 0, 0, 0.0, time.monotonic() + wall_s
+        while time.monotonic() < end:
+            _, sender = sock.recvfrom(256)
+            total += 1
+            frames += 1
+            if total == 2000:  # past ArduCopter's start-up
+                t0, frames = time.monotonic(), 0
+            sock.sendto(sensor_json(total * 0.001, (0.0, 0.0, 0.0), (0.0, 0.0, -9.80665),
+                                    (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)), sender)
+        return frames / (time.monotonic() - t0) if t0 else 0.0
+    finally:
+        proc.kill()
+        proc.wait()
+        sock.close()
+
+
+def quadsr(*argv: str) -> str:
+    """Run a quadsr subcommand; its output (RuntimeError when it fails)."""
+    run = subprocess.run([sys.executable, "-m", "quadsr.cli", *argv], capture_output=True, text=True,
+                         cwd=REPO)
+    if run.returncode != 0:
+        raise RuntimeError(f"quadsr {' '.join(argv)} failed:\n{run.stdout[-2000:]}\n{run.stderr[-2000:]}")
+    return run.stdout + run.stderr
+
+
+def r2_table(text: str) -> dict[str, float]:
+    """target -> R^2 from the first Markdown metrics table in quadsr output (Table I layout)."""
+    out: dict[str, float] = {}
+    for line in text.splitlines():
+        m = ROW.match(line)
+        if m and m.group(1) in TARGETS and m.group(1) not in out:
+            out[m.group(1)] = float(m.group(4))
+    return out
+
+
+def identify_and_validate(train: Path, validate: Path, out: Path, budget: int, extra: list[str]) -> dict:
+    """R^2 per target of a model identified on train, evaluated on validate."""
+    model = out / f"model-{train.suffix.lstrip('.')}.yaml"
+    quadsr("identify", str(train), "-o", str(model), "--engine", "sparse", "--budget", str(budget),
+           "--seed", "0", "--no-progress", *extra)
+    folder = out / f"validation-{model.stem}"
+    text = quadsr("validate", str(model), str(validate), "--out", str(folder), *extra)
+    return r2_table(text)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ardupilot", default=str(REPO.parent / "shared" / "ardupilot"))
+    parser.add_argument("--speedup", type=float, default=100.0)
+    parser.add_argument("--out", default=None)
+    parser.add_argument("--budget", type=int, default=30, help="identification budget per target, s")
+    args = parser.parse_args()
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ardupilot-loop-"))
+    out.mkdir(parents=True, exist_ok=True)
+    print(f"bench/ardupilot_loop.py: ArduCopter from {args.ardupilot}, --speedup {args.speedup:g}, out {out}")
+    top = ceiling(Path(args.ardupilot), out)
+    print(f"ceiling: ArduCopter against a stationary responder runs {top:.0f} frames/s (1 ms each: a "
+          f"real-time factor of {top * 0.001:.1f}) on this machine now", flush=True)
+    flights = {}
+    for name in ("train", "validate"):
+        f = fly(name, args, out)
+        flights[name] = f
+        chirps = ", ".join(f"axis {c.axis} {c.magnitude:g} m/s {c.end - c.start:.1f} s"
+                           + (f" (stopped: {c.stopped})" if c.stopped else "") for c in f["chirps"])
+        print(f"{name}: EKF on GPS at {f['ekf_s']:.1f} s; real-time factor in flight {f['rtf']:.2f}; hold "
+              f"over {HOLD_S:g} s at {HEIGHT:g} m: ArduPilot's estimate within {f['estimate_hold_m']:.3f} m, "
+              f"truth within {f['truth_hold_m']:.3f} m; chirps: {chirps}", flush=True)
+    r2_tlog = identify_and_validate(flights["train"]["tlog"], flights["validate"]["tlog"], out, args.budget,
+                                    [])
+    print("R^2 on the validation flight, model from the training flight's truth .tlog: "
+          + ", ".join(f"{k} {v:.6f}" for k, v in r2_tlog.items()), flush=True)
+    r2_bin = {}
+    if flights["train"]["bin"] and flights["validate"]["bin"]:
+        r2_bin = identify_and_validate(flights["train"]["bin"], flights["validate"]["bin"], out, args.budget,
+                                       ["--motor-curve", "fang-chen-buaa"])
+        print("R^2 on the validation flight, model from the training flight's DataFlash log (RCOU through "
+              "the motor curve, EKF states): " + ", ".join(f"{k} {v:.4f}" for k, v in r2_bin.items()),
+              flush=True)
+    checks = []
+    for name, f in flights.items():
+        checks.append((f["rtf"] >= 5.0, f"{name}: real-time factor {f['rtf']:.2f} >= 5"))
+        checks.append((f["estimate_hold_m"] < 0.15 and f["truth_hold_m"] < 0.15,
+                       f"{name}: hold within 0.15 m (estimate {f['estimate_hold_m']:.3f}, truth "
+                       f"{f['truth_hold_m']:.3f})"))
+    checks.append((len(r2_tlog) == 6 and min(r2_tlog.values()) >= 0.99,
+                   f"truth .tlog model: R^2 >= 0.99 on every target (lowest "
+                   f"{min(r2_tlog.values(), default=float('nan')):.6f})"))
+    for ok, text in checks:
+        print(("PASS " if ok else "FAIL ") + text)
+    return 0 if all(ok for ok, _ in checks) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,264 @@
+"""`quadsr sitl --ardupilot`: the SITL's physics and sensors stepped by ArduPilot over its JSON interface.
+
+Lockstep with ArduPilot's frame_count: a new frame steps the physics 1 ms with the packet's PWM (through
+the vehicle's PWM range and motor curve) and is answered with the new state; the same frame again (ArduPilot
+re-sends after about 1.1 s without an answer) gets the last answer again without stepping; a frame_count
+going back, or frames from a new source address (another ArduPilot process), is a restarted ArduPilot:
+the vehicle is put back at its start and time restarts (ArduPilot takes the falling timestamp as a
+physics reset). Packets with a wrong magic or size are dropped and counted.
+The first answer carries timestamp 0.001 s: ArduPilot's clock advances by differences of timestamps.
+
+The truth .tlog holds what `quadsr sitl --log` writes for a HIL flight (the step frames of sitl.hil, from
+sysid 1 compid 51) every 4 ms, plus the motor throttles then as HIL_ACTUATOR_CONTROLS (sysid 1 compid 1),
+so every quadsr tool reads ArduPilot-flown flights as it reads its own.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import socket
+import sys
+import time
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import TextIO
+
+from bridge.errors import UserError
+from bridge.link import Endpoint
+from bridge.messages import encode_hil_actuator_controls
+from bridge.tlog import TlogWriter
+from bridge.vehicle import VehicleConfig
+from sitl.ardupilot_json import BadPacket, parse_servo_packet, sensor_json, throttles_from_pwm
+from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
+from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, Framer, HilEncoder, part_of
+from sitl.sensors import SensorModel
+
+JSON_STEP_USEC = 1000  # physics step per servo frame: ArduCopter's 400 Hz loop needs a gyro at >= 720 Hz
+TLOG_EVERY_USEC = EXCHANGE_STEP_USEC  # the .tlog keeps quadsr's 4 ms grid (its readers expect 250 Hz)
+MAX_WAIT_S = 0.25  # longest single blocking wait, so SIGINT/SIGTERM are honoured promptly
+AUTOPILOT_COMPONENT_ID = 1  # the throttles are logged as the autopilot's HIL_ACTUATOR_CONTROLS
+LISTENING = "listening for ArduPilot on"
+
+
+@dataclass
+class ArduPilotOptions:
+    """What `quadsr sitl --ardupilot` runs with (validated by sitl.cli)."""
+
+    vehicle: VehicleConfig
+    endpoint: Endpoint  # where ArduPilot sends its servo packets (its 9002 + 10*instance)
+    log: Path | None = None
+    initial_rotor_speed: float = 0.0  # rad/s, all four rotors
+    status_interval: float = 5.0  # s wall; 0: no periodic status line
+    silence_timeout: float = 3.0  # s wall without servo packets, once flying, before saying ArduPilot stopped
+    max_steps: int | None = None
+
+
+@dataclass
+class ServoStats:
+    """What came from ArduPilot: packets used, re-sent, missed, restarts, and bad packets dropped."""
+
+    packets: int = 0  # servo packets received (good ones)
+    resent: int = 0  # the same frame_count again: answered with the last reply, no step
+    missed: int = 0  # frame_count jumped forward by more than 1: frames never received
+    restarts: int = 0  # frame_count went back or a new sender: ArduPilot restarted, the vehicle was reset
+    bad_magic: int = 0  # dropped: not a servo packet magic
+    bad_size: int = 0  # dropped: wrong length for its magic
+    senders: int = 0  # distinct ArduPilot addresses seen
+
+    def as_dict(self) -> dict[str, int]:
+        """All counters as a plain dict."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class _Sequence:
+    """The identity and sequence number a Framer stamps on frames (what a UdpLink holds for a HilEncoder)."""
+
+    system_id: int
+    component_id: int
+    seq: int = 0
+    signing: None = None
+
+
+class ArduPilotServer:
+    """One simulated quadrotor stepped by ArduPilot's servo packets, answered with its JSON sensor object."""
+
+    def __init__(self, options: ArduPilotOptions, out: TextIO | None = None):
+        self.options = options
+        self.out = out if out is not None else sys.stdout
+        v = options.vehicle
+        self.quad = Quadrotor(v, JSON_STEP_USEC)
+        self.sensors = SensorModel(v.sensors, v.home, v.simulation.seed)
+        self.pwm_range = (v.motor.pwm_min, v.motor.pwm_max)
+        self.stats = ServoStats()
+        self.steps = 0
+        self.last_count: int | None = None
+        self.last_reply = b""
+        self.peer: tuple[str, int] | None = None
+        self._state = HilEncoder(v.home, _Sequence(SYSTEM_ID, HIL_COMPONENT_ID))  # type: ignore[arg-type]
+        autopilot = _Sequence(SYSTEM_ID, AUTOPILOT_COMPONENT_ID)
+        self._commands = Framer(SYSTEM_ID, AUTOPILOT_COMPONENT_ID, autopilot)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.bind(options.endpoint.address)
+        except OSError as exc:
+            self.sock.close()
+            raise UserError(f"--ardupilot {options.endpoint}: cannot listen there ({exc.strerror})",
+                            hint="is another simulator there? use another port or -I N") from None
+        self.port = self.sock.getsockname()[1]
+        try:
+            self.tlog = TlogWriter(options.log) if options.log else None
+        except UserError:
+            self.sock.close()
+            raise
+        self._stop = False
+        self._silent_said = False
+        self._reset()
+
+    # -------------------------------------------------------------------------------------------------
+    # The protocol
+
+    def _reset(self) -> None:
+        """The vehicle back at its start, time 0, the noise stream restarted; time 0 logged."""
+        v = self.options.vehicle
+        speed = self.options.initial_rotor_speed
+        self.quad.reset(position=v.initial.position, yaw=v.initial.yaw, rotor_speeds=[speed] * 4)
+        self.sensors.reset()
+        self._log_state()
+
+    def handle(self, data: bytes, sender: tuple[str, int]) -> bytes | None:
+        """The reply to one datagram from ArduPilot (None: dropped and counted)."""
+        stats = self.stats
+        try:
+            packet = parse_servo_packet(data)
+        except BadPacket as exc:
+            if exc.reason == "magic":
+                stats.bad_magic += 1
+            else:
+                stats.bad_size += 1
+            return None
+        stats.packets += 1
+        new_sender = sender != self.peer
+        if new_sender:
+            stats.senders += 1
+            self.peer = sender
+        count = packet.frame_count
+        last = self.last_count
+        if last is not None and count == last and not new_sender:
+            stats.resent += 1
+            return self.last_reply
+        if last is not None and (count < last or new_sender):
+            # frame_count going back, or another ArduPilot process (a new source port): a restart
+            stats.restarts += 1
+            why = f"frame {count} after {last}" if count < last else f"a new sender {sender[0]}:{sender[1]}"
+            self._say(f"quadsr sitl: ArduPilot restarted ({why}) at t={self.quad.time_usec * 1e-6:.3f}s: "
+                      "vehicle reset to its start")
+            self._reset()
+        elif last is not None and count > last + 1:
+            stats.missed += count - last - 1
+        self.last_count = count
+        self._silent_said = False
+        self.last_reply = self._step(throttles_from_pwm(packet.pwm, *self.pwm_range))
+        return self.last_reply
+
+    def _step(self, throttles: tuple[float, float, float, float]) -> bytes:
+        """Log the command at the current time, step 1 ms, log the new state, return its JSON line."""
+        quad = self.quad
+        if self.tlog is not None and quad.time_usec % TLOG_EVERY_USEC == 0:
+            msg = encode_hil_actuator_controls(quad.time_usec, throttles)
+            self.tlog.write_frames(self._commands.frames([part_of(msg)]))
+        quad.step(throttles)
+        self.steps += 1
+        s = self._log_state()
+        return sensor_json(quad.time_usec * 1e-6, s.gyro, s.accel, quad.position, quad.velocity,
+                           quad.quaternion)
+
+    def _log_state(self):
+        """Sample the sensors at the current step and write its HIL frames to the tlog; return the sample."""
+        s = self.sensors.sample(self.quad)
+        if self.tlog is not None and self.quad.time_usec % TLOG_EVERY_USEC == 0:
+            self.tlog.write_frames(self._state.step_frames(self.quad, s))
+        return s
+
+    # -------------------------------------------------------------------------------------------------
+    # Running
+
+    def run(self) -> int:
+        """Serve until SIGINT/SIGTERM or --max-steps; returns the exit code (0)."""
+        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        opts = self.options
+        try:
+            self._say(
+                f"quadsr sitl: {LISTENING} udp:{opts.endpoint.host}:{self.port} (JSON physics, lockstep on "
+                f"frame_count); vehicle {opts.vehicle.name}; "
+                f"PWM {self.pwm_range[0]:g}-{self.pwm_range[1]:g} us"
+                + (f"; logging to {opts.log}" if opts.log else "")
+            )
+            now = time.monotonic()
+            next_status = now + opts.status_interval if opts.status_interval else math.inf
+            last_packet = now
+            status_steps, status_wall = 0, now
+            self.sock.settimeout(MAX_WAIT_S)
+            while not self._stop and not self._done():
+                try:
+                    data, sender = self.sock.recvfrom(4096)
+                except TimeoutError:
+                    data = None
+                except OSError:  # e.g. ICMP port unreachable of an earlier reply: keep serving
+                    data = None
+                now = time.monotonic()
+                if data is not None:
+                    reply = self.handle(data, sender)
+                    if reply is not None:
+                        last_packet = now
+                        try:
+                            self.sock.sendto(reply, sender)
+                        except OSError:
+                            pass
+                elif self.steps and not self._silent_said and now - last_packet > opts.silence_timeout:
+                    self._silent_said = True
+                    self._say(f"quadsr sitl: ArduPilot silent for {opts.silence_timeout:g} s at "
+                              f"t={self.quad.time_usec * 1e-6:.3f}s (frame {self.last_count}): stopped or "
+                              "killed? waiting for it (a restarted ArduPilot resets the vehicle)")
+                if now >= next_status:
+                    self._say(self.status_line(now - status_wall, self.steps - status_steps))
+                    status_steps, status_wall = self.steps, now
+                    next_status = now + opts.status_interval
+            self._say(self.status_line(max(time.monotonic() - status_wall, 1e-9), self.steps - status_steps)
+                      + " (exit)")
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+            self.close()
+        return 0
+
+    def status_line(self, wall_s: float, steps: int) -> str:
+        """One line: sim time, steps, rate, real-time factor, peer, position NED and the packet counters."""
+        rate = steps / max(wall_s, 1e-9)
+        n, e, d = self.quad.position
+        who = f"{self.peer[0]}:{self.peer[1]}" if self.peer else "none"
+        counters = " ".join(f"{k}={v}" for k, v in self.stats.as_dict().items())
+        return (f"quadsr sitl: t={self.quad.time_usec * 1e-6:.3f}s steps={self.steps} rate={rate:.0f}/s "
+                f"rtf={rate * JSON_STEP_USEC * 1e-6:.2f} ardupilot={who} frame={self.last_count} "
+                f"pos_ned=({n:.3f},{e:.3f},{d:.3f})m {counters}")
+
+    def close(self) -> None:
+        """Close the socket and the tlog."""
+        self.sock.close()
+        if self.tlog is not None:
+            self.tlog.close()
+
+    def _done(self) -> bool:
+        return self.options.max_steps is not None and self.steps >= self.options.max_steps
+
+    def _on_signal(self, signum, frame) -> None:
+        self._stop = True
+
+    def _say(self, line: str) -> None:
+        if self.out is None:
+            return
+        try:
+            print(line, file=self.out, flush=True)
+        except (BrokenPipeError, ValueError, OSError):
+            self.out = None
