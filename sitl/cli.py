@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 from bridge.errors import UserError
 
 if TYPE_CHECKING:
+    from bridge.link import Endpoint
     from bridge.vehicle import VehicleConfig
     from sitl.server import SitlOptions
 
@@ -31,8 +32,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--vehicle", default=DEFAULT_VEHICLE, metavar="FILE|NAME",
                    help=f"vehicle YAML file or bundled name (default {DEFAULT_VEHICLE})")
-    p.add_argument("--hil", default=DEFAULT_HIL, metavar="udp:HOST:PORT",
-                   help=f"address to listen on for the companion (default {DEFAULT_HIL})")
+    p.add_argument("--hil", default=DEFAULT_HIL, metavar="udp:HOST:PORT|tcp:HOST:PORT|udpout:HOST:PORT",
+                   help=f"address to listen on for the companion (default {DEFAULT_HIL}); for PX4: "
+                        "tcp:127.0.0.1:4560+N to listen for PX4 instance N (simulator_mavlink -c), "
+                        "udpout:HOST:PORT to send first to a PX4 started with simulator_mavlink -u PORT")
     p.add_argument("--gcs", default=DEFAULT_GCS, metavar="udp:HOST:PORT",
                    help=f"ground station to send telemetry to (default {DEFAULT_GCS})")
     p.add_argument("--offboard", default=None, metavar="udp:HOST:PORT",
@@ -60,8 +63,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--status-interval", type=float, default=5.0, metavar="S",
                    help="wall seconds between status lines (default 5; 0 turns them off)")
     p.add_argument("--max-steps", type=int, default=None, metavar="N", help="exit after N steps")
-    p.add_argument("--companion-sysid", type=int, default=1, metavar="ID",
-                   help="system id the companion sends from (default 1); other ids are dropped")
+    p.add_argument("--companion-sysid", type=int, default=None, metavar="ID",
+                   help="system id the companion sends from (default 1; with tcp:/udpout: any, PX4 "
+                        "instance N sends from N+1); other ids are dropped")
     p.set_defaults(func=run)
 
 
@@ -87,7 +91,7 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
         raise UserError(f"--status-interval must be >= 0 seconds, got {args.status_interval}")
     if args.max_steps is not None and args.max_steps < 0:
         raise UserError(f"--max-steps must be >= 0, got {args.max_steps}")
-    if not 1 <= args.companion_sysid <= 255:
+    if args.companion_sysid is not None and not 1 <= args.companion_sysid <= 255:
         raise UserError(f"--companion-sysid must be 1..255, got {args.companion_sysid}")
     ground_endpoints = []
     if not args.no_gcs:
@@ -99,7 +103,7 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
         raise UserError(f"--log {log} is a directory", hint="give a file name such as flight.tlog")
     return SitlOptions(
         vehicle=vehicle,
-        hil=parse_endpoint(args.hil),
+        hil=parse_hil_address(args.hil),
         ground=ground_endpoints,
         mode=args.mode,
         log=log,
@@ -109,17 +113,27 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
         realtime_timeout=args.realtime_timeout,
         status_interval=args.status_interval,
         max_steps=args.max_steps,
-        companion_sysid=args.companion_sysid,
+        companion_sysid=args.companion_sysid or 1,
     )
+
+
+def parse_hil_address(text: str) -> Endpoint:
+    """--hil: udp:/udpin: (a companion), tcp: (listen for PX4) or udpout: (send first to PX4)."""
+    from bridge.link import parse_endpoint
+    from bridge.stream_link import is_tcp_address, parse_tcp_endpoint
+
+    return parse_tcp_endpoint(text) if is_tcp_address(text) else parse_endpoint(text)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the SITL until SIGINT/SIGTERM (exit 0) or --max-steps."""
+    from sitl.autopilot_server import AutopilotSitlServer, serves_autopilot
     from sitl.server import SitlServer
 
     options = options_from_args(args)
-    server = SitlServer(options)
-    return server.run()
+    if serves_autopilot(options):
+        return AutopilotSitlServer(options, autopilot_sysid=args.companion_sysid).run()
+    return SitlServer(options).run()
 
 
 def _triple(text: str, flag: str) -> tuple[float, float, float]:
