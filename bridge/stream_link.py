@@ -42,7 +42,8 @@ def parse_tcp_endpoint(text: str) -> Endpoint:
     host = m.group(1).strip("[]") or "0.0.0.0"
     port = int(m.group(2))
     if not 0 <= port <= 65535:
-        raise UserError(f"bad port {port} in TCP address {text!r}", hint=f"a TCP port is 0..65535; {TCP_FORM}")
+        raise UserError(f"bad port {port} in TCP address {text!r}",
+                        hint=f"a TCP port is 0..65535; {TCP_FORM}")
     return Endpoint(host, port, "tcp")
 
 
@@ -165,8 +166,10 @@ class TcpLink:
 
     # -- receiving -----------------------------------------------------------------------------------
     def recv_split(self, timeout: float | None = 0.0) -> list[tuple]:
-        """Checked, undecoded frames [(spec, frame, header_len, signature_len)] of one read, waiting up to
-        timeout s (None: forever); [] if none. Also accepts a waiting connection. Never raises on bad bytes."""
+        """Checked, undecoded frames [(spec, frame, header_len, signature_len)] of one read.
+
+        Waits up to timeout s (None: forever); [] if none. Also accepts a waiting connection. Bad bytes are
+        counted in .stats, never raised."""
         sock = self._conn if self._conn is not None else self._server
         try:
             ready, _, _ = select.select([sock, self._server] if sock is not self._server else [sock], [], [],

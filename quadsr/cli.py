@@ -16,6 +16,7 @@ COMMAND_MODULES = (
     "identification.cli",
     "controller.cli",
     "quadsr.pipeline_cli",
+    "quadsr.px4_cli",
 )
 
 
