@@ -16,7 +16,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
-LISTENING = re.compile(r"listening for the companion on (udp:[\d.]+:(\d+))")
+LISTENING = re.compile(r"(?:listening for the (?:companion|autopilot) on|sending to the autopilot at) "
+                       r"((?:udp|tcp):[\d.]+:(\d+))")
 
 
 def free_udp_port() -> int:
