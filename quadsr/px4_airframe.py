@@ -21,11 +21,11 @@ import re
 from dataclasses import dataclass
 
 from bridge.errors import UserError
+from bridge.px4_thrust import fit_thrust_model, px4_thrust
 from bridge.rotors import rotors_of
 from bridge.vehicle import VehicleConfig
 
 AIRFRAME_ID = 10099  # SYS_AUTOSTART of quadsr's airframes (free in PX4's init.d-posix/airframes)
-FIT_POINTS = 201  # throttle samples of the thrust-model fit
 MIN_THRUST_TO_WEIGHT = 1.2  # below it PX4 cannot hold altitude with any margin
 
 
@@ -68,30 +68,6 @@ class Px4Airframe:
             text = str(value) if isinstance(value, int) else f"{value:.6g}"
             lines.append(f"param set-default {name} {text}")
         return "\n".join(lines) + "\n"
-
-
-def thrust_fraction(vehicle: VehicleConfig, u: float) -> float:
-    """The vehicle's steady thrust at output u in [0, 1], as a fraction of full thrust."""
-    curve = vehicle.motor_curve
-    return (curve.speed_for_throttle(u) / curve.max_speed) ** 2
-
-
-def px4_thrust(factor: float, u: float) -> float:
-    """PX4's normalised thrust (1-f) u + f u^2 at output u in [0, 1]."""
-    return (1.0 - factor) * u + factor * u * u
-
-
-def fit_thrust_model(vehicle: VehicleConfig) -> tuple[float, float]:
-    """(THR_MDL_FAC f in [0, 1], RMS error in fractions of full thrust) fitted over u in [0, 1]."""
-    us = [i / (FIT_POINTS - 1) for i in range(FIT_POINTS)]
-    num = den = 0.0
-    for u in us:
-        basis = u * u - u
-        num += basis * (thrust_fraction(vehicle, u) - u)
-        den += basis * basis
-    factor = min(max(num / den, 0.0), 1.0)
-    rms = math.sqrt(sum((px4_thrust(factor, u) - thrust_fraction(vehicle, u)) ** 2 for u in us) / len(us))
-    return factor, rms
 
 
 def airframe_for(vehicle: VehicleConfig) -> Px4Airframe:

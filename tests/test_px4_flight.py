@@ -45,6 +45,7 @@ def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
     run, gcs, work, ready_wall = px4_flight
     assert ready_wall < 60.0
     assert "autopilot connected" in (work / "sitl.log").read_text()
+    assert "SYS_AUTOSTART=10099" in (work / "px4.log").read_text()  # the matched airframe
     gcs.run_until(lambda g: g.position is not None, sim_s=5.0)
     x0, y0, _ = gcs.position
     assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
