@@ -50,8 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="sensor noise preset of the SITL (default: the vehicle file's)")
     p.add_argument("--seed", type=int, default=None, help="sensor noise seed (default: the vehicle file's)")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
-                   help="lockstep: as fast as PX4 answers (default); realtime: paced to the wall clock, e.g. "
-                        "for an offboard companion or a person at QGroundControl")
+                   help="lockstep: as fast as PX4 answers (default); realtime: lockstep at most as fast as "
+                        "the wall clock, for an offboard companion or a person at QGroundControl")
     p.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                    help="wall seconds PX4 gets to connect to the simulator (default 60)")
     p.add_argument("--lockstep-timeout", type=float, default=5.0, metavar="S",
@@ -105,7 +105,9 @@ def _px4(args: argparse.Namespace) -> int:
     tree = prepare_work(build, work, airframe_for(vehicle), str(vehicle.source_path or vehicle.name))
     sitl_args = ["--vehicle", str(vehicle.source_path or vehicle.name), "--companion-sysid",
                  str(ports.system_id()), "--lockstep-timeout", str(args.lockstep_timeout),
-                 "--log", str(work / "truth.tlog"), "--mode", args.mode]
+                 "--log", str(work / "truth.tlog")]
+    if args.mode == "realtime":
+        sitl_args += ["--max-rtf", "1"]
     if args.sensors:
         sitl_args += ["--sensors", args.sensors]
     if args.seed is not None:

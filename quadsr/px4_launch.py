@@ -53,9 +53,10 @@ class Px4Ports:
 
     @property
     def udp_local(self) -> tuple[int, ...]:
-        """Every UDP port PX4 binds: GCS, offboard, onboard payload, gimbal."""
+        """Every UDP port PX4 binds (GCS, offboard, onboard payload, gimbal), and for N <= 9 the offboard
+        companion's 14540+N (bridge.offboard.default_local)."""
         n = self.instance
-        return (18570 + n, 14580 + n, 14280 + n, 13030 + n)
+        return (18570 + n, 14580 + n, 14280 + n, 13030 + n) + ((14540 + n,) if n <= 9 else ())
 
     def system_id(self) -> int:
         """PX4's MAV_SYS_ID for this instance: N+1."""

@@ -39,8 +39,11 @@ def serves_autopilot(options: SitlOptions) -> bool:
 class AutopilotSitlServer(SitlServer):
     """A SitlServer whose HIL peer is an autopilot on PX4's simulator transport (TCP or send-first UDP)."""
 
-    def __init__(self, options: SitlOptions, autopilot_sysid: int | None = None, out: TextIO | None = None):
+    def __init__(self, options: SitlOptions, autopilot_sysid: int | None = None, max_rtf: float = 0.0,
+                 out: TextIO | None = None):
         self.autopilot_sysid = autopilot_sysid
+        self.step_wall = EXCHANGE_STEP / max_rtf if max_rtf > 0 else 0.0  # wall s per lockstep step, at least
+        self._pace_next = 0.0
         super().__init__(options, out)
 
     def _open_link(self, signing: Signing | None) -> TcpLink | UdpLink:
@@ -61,7 +64,9 @@ class AutopilotSitlServer(SitlServer):
             where = f"sending to the autopilot at udp:{o.hil.host}:{o.hil.port}"
         who = "any system id" if self.autopilot_sysid is None else f"system id {self.autopilot_sysid}"
         return (
-            f"quadsr sitl: {where} (PX4 simulator protocol, {o.mode}, {who}); vehicle {o.vehicle.name}"
+            f"quadsr sitl: {where} (PX4 simulator protocol, {o.mode}"
+            + (f" at most {EXCHANGE_STEP / self.step_wall:g}x real time" if self.step_wall else "")
+            + f", {who}); vehicle {o.vehicle.name}"
             + (f"; logging to {o.log}" if o.log else "")
         )
 
@@ -75,8 +80,14 @@ class AutopilotSitlServer(SitlServer):
 
     def _send_step(self) -> None:
         # Never the same time_usec twice: PX4's IMU checks trip on a repeated stamp (TCP loses nothing).
-        if self.quad.time_usec != self.last_sent_usec:
-            super()._send_step()
+        if self.quad.time_usec == self.last_sent_usec:
+            return
+        if self.step_wall and self.phase == "stepping":  # lockstep, but no faster than max_rtf x real time
+            now = time.monotonic()
+            if now < self._pace_next:
+                time.sleep(self._pace_next - now)
+            self._pace_next = max(self._pace_next + self.step_wall, now - MAX_LAG_S)
+        super()._send_step()
 
     def _autopilot_there(self) -> bool:
         return self.link.connected if isinstance(self.link, TcpLink) else True

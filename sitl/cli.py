@@ -63,6 +63,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--status-interval", type=float, default=5.0, metavar="S",
                    help="wall seconds between status lines (default 5; 0 turns them off)")
     p.add_argument("--max-steps", type=int, default=None, metavar="N", help="exit after N steps")
+    p.add_argument("--max-rtf", type=float, default=0.0, metavar="R",
+                   help="with tcp:/udpout: lockstep, but at most R times real time (1: paced to the wall "
+                        "clock, for an offboard companion beside PX4); default 0, as fast as the autopilot")
     p.add_argument("--companion-sysid", type=int, default=None, metavar="ID",
                    help="system id the companion sends from (default 1; with tcp:/udpout: any, PX4 "
                         "instance N sends from N+1); other ids are dropped")
@@ -89,6 +92,8 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
     if not (math.isfinite(args.status_interval) and args.status_interval >= 0):
         raise UserError(f"--status-interval must be >= 0 seconds, got {args.status_interval}")
+    if not (math.isfinite(args.max_rtf) and args.max_rtf >= 0):
+        raise UserError(f"--max-rtf must be >= 0 (0: no limit), got {args.max_rtf}")
     if args.max_steps is not None and args.max_steps < 0:
         raise UserError(f"--max-steps must be >= 0, got {args.max_steps}")
     if args.companion_sysid is not None and not 1 <= args.companion_sysid <= 255:
@@ -132,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
 
     options = options_from_args(args)
     if serves_autopilot(options):
-        return AutopilotSitlServer(options, autopilot_sysid=args.companion_sysid).run()
+        return AutopilotSitlServer(options, autopilot_sysid=args.companion_sysid, max_rtf=args.max_rtf).run()
     return SitlServer(options).run()
 
 

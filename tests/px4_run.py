@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -97,11 +98,12 @@ class Gcs:
         self.sim_ms = 0  # PX4's time_boot_ms (simulated time in lockstep) of the last message seen
         self.position: tuple[float, float, float] | None = None  # NED m, PX4's estimate
         self.armed = False
+        self.custom_mode: int | None = None
         self.landed_state = 0
 
     def recv(self, timeout: float = 1.0):
         """One message from PX4 (None after timeout s wall); keeps sim time, position, armed, landed."""
-        msg = self.conn.recv_match(blocking=True, timeout=timeout)
+        msg = self.conn.recv_match(blocking=timeout > 0, timeout=timeout)
         if msg is None or msg.get_srcSystem() != self.sysid:
             return None
         kind = msg.get_type()
@@ -111,9 +113,17 @@ class Gcs:
             self.position = (msg.x, msg.y, msg.z)
         elif kind == "HEARTBEAT" and msg.get_srcComponent() == 1:
             self.armed = bool(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+            self.custom_mode = msg.custom_mode
         elif kind == "EXTENDED_SYS_STATE":
             self.landed_state = msg.landed_state
         return msg
+
+    def drain(self) -> None:
+        """Read every message already queued, so that what follows is PX4's latest news."""
+        for _ in range(1_000_000):
+            msg = self.conn.recv_match(blocking=False)
+            if msg is None and not select.select([self.conn.port], [], [], 0)[0]:
+                return
 
     def connect(self, wall_timeout: float = 30.0) -> None:
         """Heartbeats until PX4 answers with its own."""
@@ -140,13 +150,19 @@ class Gcs:
 
     def run_until(self, done, sim_s: float, wall_timeout: float = 120.0) -> None:
         """Read messages until done(self) is true; fails after sim_s of simulated time (or the wall bound)."""
-        start = self.sim_ms
+        start = None  # PX4's clock at the first message read here (not older news)
         deadline = time.monotonic() + wall_timeout
+        seen: dict[str, int] = {}
         while not done(self):
-            self.recv(0.5)
-            if self.sim_ms - start > sim_s * 1000.0 or time.monotonic() > deadline:
+            msg = self.recv(0.5)
+            if msg is not None:
+                seen[msg.get_type()] = seen.get(msg.get_type(), 0) + 1
+                if start is None:
+                    start = self.sim_ms
+            if (start is not None and self.sim_ms - start > sim_s * 1000.0) or time.monotonic() > deadline:
                 raise AssertionError(f"not done within {sim_s} s simulated (or {wall_timeout} s wall); "
-                                     f"position {self.position}, armed {self.armed}")
+                                     f"position {self.position}, armed {self.armed}, mode "
+                                     f"{self.custom_mode}, from {start} to {self.sim_ms} ms; messages {seen}")
 
     def takeoff(self) -> int:
         """MAV_CMD_NAV_TAKEOFF to PX4's default altitude (MIS_TAKEOFF_ALT); the ack result."""

@@ -79,6 +79,7 @@ def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
 
 def test_px4_killed_mid_flight_stops_everything_with_a_clear_message(px4_flight):
     run, gcs, work, _ = px4_flight
+    gcs.drain()
     assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
     assert gcs.takeoff() == mav.MAV_RESULT_ACCEPTED
     gcs.run_until(lambda g: g.position[2] < -1.0, sim_s=20.0)
