@@ -10,18 +10,13 @@ parameters, dataman, ULogs under `rootfs/log/`).
 from __future__ import annotations
 
 import os
-import re
 import shutil
-import signal
 import socket
-import subprocess
-import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from bridge.errors import UserError
-from quadsr.parent_death import die_with_parent
+from quadsr.child_process import OutputProcess
 from quadsr.px4_airframe import AIRFRAME_ID, Px4Airframe
 
 
@@ -143,70 +138,17 @@ def prepare_work(build: Path, work: Path, airframe: Px4Airframe, source: str) ->
     return Px4Tree(bin_dir / "px4", etc, rootfs, airframe.model_name())
 
 
-class Px4Process:
+class Px4Process(OutputProcess):
     """PX4 SITL as a child process (killed if this process dies), its output kept and echoed to a log."""
 
     def __init__(self, tree: Px4Tree, instance: int, log_path: Path):
         self.tree = tree
         self.instance = instance
-        self.log_path = log_path
-        self.lines: list[str] = []
-        self._cond = threading.Condition()
         env = dict(os.environ, PX4_SIM_MODEL=tree.model)
         env["PATH"] = f"{tree.px4.parent}{os.pathsep}{env.get('PATH', '')}"
-        self.args = [str(tree.px4), "-d", "-i", str(instance), "-w", str(tree.rootfs), str(tree.etc)]
-        self.proc = subprocess.Popen(self.args, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, cwd=tree.rootfs, env=env,
-                                     preexec_fn=die_with_parent)
-        self._reader = threading.Thread(target=self._pump, daemon=True)
-        self._reader.start()
-
-    def _pump(self) -> None:
-        assert self.proc.stdout is not None
-        with open(self.log_path, "a", buffering=1, encoding="utf-8") as log:
-            for raw in self.proc.stdout:
-                line = raw.decode("utf-8", "replace").rstrip("\n")
-                log.write(line + "\n")
-                with self._cond:
-                    self.lines.append(line)
-                    self._cond.notify_all()
-        with self._cond:
-            self._cond.notify_all()
-
-    def wait_for(self, pattern: str, timeout: float) -> re.Match | None:
-        """The first output line matching pattern within timeout s wall; None on timeout or exit."""
-        rx = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        seen = 0
-        with self._cond:
-            while True:
-                for line in self.lines[seen:]:
-                    m = rx.search(line)
-                    if m:
-                        return m
-                seen = len(self.lines)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.proc.poll() is not None and not self._reader.is_alive()):
-                    return None
-                self._cond.wait(min(remaining, 0.2))
-
-    def tail(self, n: int = 15) -> str:
-        """The last n output lines."""
-        with self._cond:
-            return "\n".join(self.lines[-n:])
+        args = [str(tree.px4), "-d", "-i", str(instance), "-w", str(tree.rootfs), str(tree.etc)]
+        super().__init__(args, cwd=tree.rootfs, env=env, log_path=log_path)
 
     def ulogs(self) -> list[Path]:
         """The ULogs PX4 wrote so far, oldest first."""
         return sorted((self.tree.rootfs / "log").rglob("*.ulg"))
-
-    def stop(self, timeout: float = 10.0) -> int:
-        """SIGTERM (PX4 shuts down and closes its ULog), SIGKILL after timeout s; the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._reader.join(5.0)
-        return self.proc.returncode

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import math
-import os
 import re
 import select
-import signal
-import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 from pymavlink import mavutil
+
+from quadsr.child_process import OutputProcess
 
 REPO = Path(__file__).resolve().parent.parent
 PX4_DIR = REPO.parent / "shared" / "px4"
@@ -21,62 +19,25 @@ STARTED = re.compile(r"started PX4 \(pid (\d+)\) and the SITL \(pid (\d+)\)")
 mav = mavutil.mavlink
 
 
-class QuadsrPx4:
+class QuadsrPx4(OutputProcess):
     """A running `quadsr px4` (PX4 + quadsr's SITL), its output lines, its children's pids."""
 
     def __init__(self, *flags: str):
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "quadsr.cli", "px4", *flags], cwd=REPO, stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.lines: list[str] = []
-        self._cond = threading.Condition()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
+        super().__init__([sys.executable, "-m", "quadsr.cli", "px4", *flags], cwd=REPO)
         m = self.wait_for(STARTED, 60.0)
         self.px4_pid, self.sitl_pid = int(m.group(1)), int(m.group(2))
 
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            with self._cond:
-                self.lines.append(line.rstrip("\n"))
-                self._cond.notify_all()
-        with self._cond:
-            self._cond.notify_all()
-
-    @property
-    def output(self) -> str:
-        """Everything printed so far."""
-        with self._cond:
-            return "\n".join(self.lines)
-
     def wait_for(self, pattern: str | re.Pattern, timeout: float) -> re.Match:
         """The first output line matching pattern; fails after timeout s wall or when the process ended."""
-        rx = re.compile(pattern) if isinstance(pattern, str) else pattern
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while True:
-                for line in self.lines:
-                    m = rx.search(line)
-                    if m:
-                        return m
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.proc.poll() is not None and not self._reader.is_alive()):
-                    raise AssertionError(f"quadsr px4 printed no line matching {rx.pattern!r} within "
-                                         f"{timeout} s (exit {self.proc.poll()}):\n" + "\n".join(self.lines))
-                self._cond.wait(min(remaining, 0.2))
+        m = self.find(pattern, timeout)
+        if m is None:
+            raise AssertionError(f"quadsr px4 printed no line matching {pattern!r} within {timeout} s "
+                                 f"(exit {self.proc.poll()}):\n{self.output}")
+        return m
 
     def stop(self, timeout: float = 30.0) -> int:
         """SIGTERM, wait (SIGKILL after timeout s), the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._reader.join(5.0)
-        return self.proc.returncode
+        return super().stop(timeout)
 
 
 def gone(pid: int) -> bool:
