@@ -1,10 +1,11 @@
 """MAVLink 2 over a TCP byte stream, listening side: what PX4's `simulator_mavlink -c PORT` connects to.
 
-`TcpLink` listens on `tcp:HOST:PORT` and serves one connection at a time (a later connection replaces the
-current one, as a restarted autopilot reconnects). It offers the calls of bridge.link.UdpLink that a server
-uses (pack, send_frames, recv_split, stats, seq, local, peer, close), with the same bad-frame counting: the
-stream is split into frames by bridge.framing.split_stream, a frame cut off at the end of a read waits for
-the next read. A send counts as one "datagram" in the stats, a read as one received "datagram".
+`TcpLink` listens on `tcp:HOST:PORT` and serves one connection at a time (a second one is closed at once;
+a restarted autopilot reconnects after its old connection ended). It offers the calls of
+bridge.link.UdpLink that a server uses (pack, send_frames, recv_split, stats, seq, local, peer, close), with
+the same bad-frame counting: the stream is split into frames by bridge.framing.split_stream, a frame cut off
+at the end of a read waits for the next read. A send counts as one "datagram" in the stats, a read as one
+received "datagram".
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ class TcpLink:
         self.seq = 0
         self.peer: tuple[str, int] | None = None  # the connected peer's address (assignments are ignored)
         self.connections = 0  # peers accepted so far
+        self.refused = 0  # connections closed at once because a peer was connected
         self.last_recv_time = 0.0
         self._conn: socket.socket | None = None
         self._conn_peer: tuple[str, int] | None = None
@@ -105,8 +107,11 @@ class TcpLink:
 
     def _accept(self) -> None:
         conn, addr = self._server.accept()
-        if self._conn is not None:
-            self._drop("replaced by a new connection")
+        if self._conn is not None:  # one peer at a time: a second connection cannot take the link over
+            conn.close()
+            self.refused += 1
+            self._notify(f"refused a second connection from {addr[0]}:{addr[1]}")
+            return
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         conn.settimeout(SEND_TIMEOUT_S)
         self._conn = conn

@@ -74,6 +74,8 @@ class AutopilotSitlServer(SitlServer):
         t = self.quad.time_usec * 1e-6
         if text.startswith("connected"):
             self._say(f"quadsr sitl: autopilot {text} at t={t:.3f}s")
+        elif text.startswith("refused"):
+            self._say(f"quadsr sitl: {text} at t={t:.3f}s (the autopilot stays connected)")
         else:
             self._say(f"quadsr sitl: autopilot {text} at t={t:.3f}s; motors off until it is back")
             self.held = ZERO

@@ -100,6 +100,11 @@ def test_tcp_free_steps_then_lockstep_with_px4_sysid(start_sitl):
         got = ap.sensors(1)
         assert [m.time_usec for m in got] == [last + 4000]
         last = got[0].time_usec
+    # A second connection cannot take the link over: closed at once, the autopilot keeps stepping.
+    intruder = socket.create_connection(("127.0.0.1", sitl.hil_port), timeout=5.0)
+    sitl.wait_for("refused a second connection")
+    assert intruder.recv(1) == b""
+    intruder.close()
     # Hostile bytes on the stream are dropped and counted; the link goes on.
     ap.sock.sendall(b"\x00garbage\xfd\x09\x00\x00\x00" + bytes(20))
     ap.send([encode_heartbeat()])
