@@ -105,9 +105,12 @@ class OffboardLink:
 
     # -- receiving -----------------------------------------------------------------------------------
     def poll(self, timeout: float = 0.0) -> list:
-        """The autopilot's messages of one datagram (waiting up to timeout s wall), state updated."""
+        """The autopilot's messages of every queued datagram (up to timeout s wall for the first); the state
+        is updated, so after a stall it is the newest, not the oldest queued."""
         self._heartbeat()
         msgs = self.link.recv(timeout)
+        if msgs:
+            msgs += self.link.drain()
         s = self.state
         out = []
         for msg in msgs:

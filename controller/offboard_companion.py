@@ -32,6 +32,7 @@ from bridge.vehicle import VehicleConfig
 from controller.companion import CRASH_TILT, CSV_COLUMNS, Companion, FlightResult, FlightSettings, StepLog
 from controller.plugin import Controller, Trajectory, VehicleState
 
+OFFBOARD_LOSS_MS = 1000  # PX4's COM_OF_LOSS_T default (1 s): setpoints older than this trip its failsafe
 TRUTH_COLUMNS = ("true_x", "true_y", "true_z", "true_vx", "true_vy", "true_vz", "true_phi", "true_theta",
                  "true_psi")
 
@@ -148,6 +149,11 @@ class OffboardCompanion(Companion):
                                              f"offboard-loss failsafe or a pilot/GCS switch{_said(link)}")
             if not st.armed and in_offboard:
                 return t0_ms, False, False, f"PX4 disarmed{_said(link)}"
+            if last_ms >= 0 and st.time_boot_ms - last_ms > OFFBOARD_LOSS_MS:
+                return t0_ms, False, False, (
+                    f"no setpoint for {(st.time_boot_ms - last_ms) * 1e-3:.1f} s of PX4's clock (this "
+                    f"process stalled): past PX4's offboard-loss timeout (COM_OF_LOSS_T, "
+                    f"{OFFBOARD_LOSS_MS / 1000:g} s), its failsafe took over{_said(link)}")
             if st.attitude_ms == last_ms:
                 continue
             last_ms = st.attitude_ms

@@ -91,7 +91,10 @@ def test_offboard_loss_failsafe_ends_the_flight_with_a_clear_message(px4_rt, tmp
         os.kill(proc.pid, signal.SIGCONT)
     output, _ = proc.communicate(timeout=60)
     assert proc.returncode == 4, output
-    assert "PX4 left OFFBOARD" in output and "Traceback" not in output
+    # the companion sees PX4 leave OFFBOARD, or (its queue overflowed while frozen) that its setpoints
+    # stopped for longer than PX4's offboard-loss timeout
+    assert "PX4 left OFFBOARD" in output or "past PX4's offboard-loss timeout" in output, output
+    assert "Traceback" not in output
     assert gcs.armed  # PX4's failsafe keeps flying (hold or land), the companion stopped commanding
 
 
