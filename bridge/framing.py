@@ -332,6 +332,30 @@ def split_datagram(
     accepted system id. Every rejected frame is counted once in `stats` by its reason; after a rejection
     the splitter resynchronises on the next start byte without counting the bytes it skips as more errors.
     """
+    return _split(data, stats, signing, accept_system_ids, False)[0]
+
+
+def split_stream(
+    data: bytes,
+    stats: LinkStats,
+    signing: Signing | None = None,
+    accept_system_ids: frozenset[int] | None = None,
+) -> tuple[list[tuple[MessageSpec, bytes, int, int]], int]:
+    """Like split_datagram for bytes read from a stream (TCP): (valid frames, bytes consumed).
+
+    A frame cut off at the end of `data` is not an error here: splitting stops at its first byte, and the
+    caller keeps data[consumed:] to prepend to the next read.
+    """
+    return _split(data, stats, signing, accept_system_ids, True)
+
+
+def _split(
+    data: bytes,
+    stats: LinkStats,
+    signing: Signing | None,
+    accept_system_ids: frozenset[int] | None,
+    stream: bool,
+) -> tuple[list[tuple[MessageSpec, bytes, int, int]], int]:
     out: list[tuple[MessageSpec, bytes, int, int]] = []
     n = len(data)
     i = 0
@@ -352,6 +376,8 @@ def split_datagram(
             continue
         if stx == STX_V2:
             if n - i < MIN_FRAME_V2:
+                if stream:
+                    return out, i
                 if not resync:
                     stats.truncated += 1
                     resync = True
@@ -373,6 +399,8 @@ def split_datagram(
             component_id = data[i + 6]
         else:
             if n - i < HEADER_LEN_V1 + 2:
+                if stream:
+                    return out, i
                 if not resync:
                     stats.truncated += 1
                     resync = True
@@ -387,6 +415,8 @@ def split_datagram(
         crc_end = i + header_len + data[i + 1]
         frame_end = crc_end + 2 + signature_len
         if frame_end > n:
+            if stream:
+                return out, i
             if not resync:
                 stats.truncated += 1
                 resync = True
@@ -422,4 +452,4 @@ def split_datagram(
             stats.wrong_system += 1
             continue
         out.append((spec, frame, header_len, signature_len))
-    return out
+    return out, n

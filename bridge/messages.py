@@ -90,6 +90,15 @@ def euler_from_quaternion(q: Sequence[float]) -> np.ndarray:
     return np.array((phi, theta, psi))
 
 
+def quaternion_from_euler(phi: float, theta: float, psi: float) -> tuple[float, float, float, float]:
+    """Scalar-first body-to-NED quaternion of ZYX Euler angles (roll phi, pitch theta, yaw psi) in rad."""
+    cr, sr = math.cos(0.5 * phi), math.sin(0.5 * phi)
+    cp, sp = math.cos(0.5 * theta), math.sin(0.5 * theta)
+    cy, sy = math.cos(0.5 * psi), math.sin(0.5 * psi)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy)
+
+
 # --------------------------------------------------------------------------------------------------------
 # Typed observations
 # --------------------------------------------------------------------------------------------------------

@@ -12,6 +12,7 @@ from bridge.errors import UserError
 BUILTIN_DURATION = 20.0  # s, default flight length of case1 and case2
 EXIT_CRASHED = 1
 EXIT_LINK_LOST = 3
+EXIT_REFUSED = 4  # the autopilot refused or left the offboard flight (rejected mode/arming, failsafe, disarm)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -31,6 +32,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="controller (default backstepping)")
     p.add_argument("--hil", default="udp:127.0.0.1:4560", metavar="udp:HOST:PORT",
                    help="the SITL's HIL address (default udp:127.0.0.1:4560)")
+    p.add_argument("--autopilot", default=None, metavar="udp:HOST:PORT",
+                   help="fly through a real autopilot's offboard link instead of the HIL link: PX4 "
+                        "(quadsr px4 instance N: udp:127.0.0.1:14580+N) in OFFBOARD, the controller's "
+                        "attitude and collective thrust as SET_ATTITUDE_TARGET (backstepping only)")
+    p.add_argument("--truth", default=None, metavar="FILE.tlog",
+                   help="with --autopilot: quadsr's truth log (quadsr px4's WORK/truth.tlog) for the metrics "
+                        "(default: the autopilot's estimate)")
     p.add_argument("--duration", type=float, metavar="S",
                    help="flight length in s (default 20 for case1/case2, else the trajectory file's)")
     p.add_argument("--state", default="truth", metavar="truth|sensors",
@@ -67,6 +75,38 @@ def _positive(name: str, value: float | None) -> None:
         raise UserError(f"{name} must be a positive number of seconds, got {value:g}")
 
 
+def _fly_offboard(args: argparse.Namespace, controller: Any, trajectory: Any, vehicle: Any, duration: float,
+                  out: Path) -> int:
+    """`quadsr fly --autopilot`: the flight through PX4's OFFBOARD mode; exit 0, 1 (crash), 3 (link), 4."""
+    from bridge.link import parse_endpoint
+    from controller.offboard_companion import OffboardCompanion, OffboardSettings
+
+    parse_endpoint(args.autopilot)
+    if args.controller != "backstepping":
+        raise UserError(f"--autopilot flies the backstepping controller only, not {args.controller!r}",
+                        hint="drop --controller, or fly the baselines over --hil")
+    truth = Path(args.truth) if args.truth else None
+    if truth is not None and not truth.is_file():
+        raise UserError(f"--truth {truth} does not exist", hint="give quadsr px4's WORK/truth.tlog")
+    settings = OffboardSettings(autopilot=args.autopilot, duration=duration, truth=truth,
+                                connect_timeout=max(args.connect_timeout, 30.0))
+    print(f"quadsr fly: {controller.name} on {trajectory.name} for {duration:g} s through PX4 OFFBOARD at "
+          f"{args.autopilot}, output in {out}", flush=True)
+    result = OffboardCompanion(controller, trajectory, vehicle, settings).fly(out)
+    m = result.metrics
+    if m is not None:
+        after = "n/a" if m.rms_after_5s_m is None else f"{m.rms_after_5s_m * 1000:.2f} mm"
+        print(f"quadsr fly: {result.steps} setpoints, RMS {m.rms_m:.4f} m, RMS after 5 s {after}, final "
+              f"{m.final_m * 1000:.2f} mm ({'truth' if truth else 'PX4 estimate'})", flush=True)
+    print(f"quadsr fly: wrote {', '.join(str(p) for p in result.files.values())}", flush=True)
+    if result.completed:
+        return 0
+    print(f"quadsr fly: {result.message}", flush=True)
+    if result.crashed:
+        return EXIT_CRASHED
+    return EXIT_LINK_LOST if result.message.startswith(("link lost", "no HEARTBEAT")) else EXIT_REFUSED
+
+
 def run_fly(args: argparse.Namespace) -> int:
     """Run `quadsr fly`; returns 0 when flown to the end, 1 after a crash, 3 when the link was lost."""
     from bridge.link import parse_endpoint
@@ -97,6 +137,8 @@ def run_fly(args: argparse.Namespace) -> int:
             raise UserError(f"model file {args.model} does not exist")
     vehicle = _vehicle_for(args, model)
     controller = make_controller(args.controller, model, vehicle, args.gains)
+    if args.autopilot:
+        return _fly_offboard(args, controller, trajectory, vehicle, duration, out)
     settings = FlightSettings(hil=args.hil, duration=duration, state=args.state,
                               link_timeout=args.link_timeout, connect_timeout=args.connect_timeout,
                               progress=not args.no_progress)

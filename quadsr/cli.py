@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "controller.cli",
     "quadsr.pipeline_cli",
     "quadsr.campaign.cli",
+    "quadsr.px4_cli",
 )
 
 

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from bridge.errors import UserError
+from quadsr.parent_death import die_with_parent
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:
@@ -24,12 +25,12 @@ def free_udp_port(host: str = "127.0.0.1") -> int:
 class SitlProcess:
     """A `quadsr sitl` child process on free ports, its output echoed to a log file, stopped on exit."""
 
-    READY_MARK = "listening for the companion"
+    READY_MARKS = ("listening for the companion", "listening for the autopilot", "sending to the autopilot")
 
     def __init__(self, extra_args: list[str] | None = None, log_path: Path | None = None,
-                 hil_port: int | None = None, gcs: str | None = None):
+                 hil_port: int | None = None, gcs: str | None = None, hil: str | None = None):
         self.hil_port = hil_port or free_udp_port()
-        self.hil = f"udp:127.0.0.1:{self.hil_port}"
+        self.hil = hil or f"udp:127.0.0.1:{self.hil_port}"
         self.args = [sys.executable, "-m", "quadsr.cli", "sitl", "--hil", self.hil]
         self.args += ["--gcs", gcs] if gcs else ["--no-gcs"]
         self.args += list(extra_args or [])
@@ -44,7 +45,7 @@ class SitlProcess:
         if self.log_path:
             Path(self.log_path).parent.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, env=env)
+                                     text=True, env=env, preexec_fn=die_with_parent)
         threading.Thread(target=self._pump, daemon=True).start()
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -54,7 +55,7 @@ class SitlProcess:
                 if self.proc.poll() is not None:
                     break
                 continue
-            if self.READY_MARK in line:
+            if any(mark in line for mark in self.READY_MARKS):
                 return self
         code = self.proc.poll()
         self.stop()

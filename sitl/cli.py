@@ -12,6 +12,7 @@ from bridge.errors import UserError
 
 if TYPE_CHECKING:
     from bridge.airframe import WindConfig
+    from bridge.link import Endpoint
     from bridge.vehicle import VehicleConfig
     from sitl.ardupilot_server import ArduPilotOptions
     from sitl.server import SitlOptions
@@ -35,8 +36,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--vehicle", default=DEFAULT_VEHICLE, metavar="FILE|NAME",
                    help=f"vehicle YAML file or bundled name (default {DEFAULT_VEHICLE})")
-    p.add_argument("--hil", default=DEFAULT_HIL, metavar="udp:HOST:PORT",
-                   help=f"address to listen on for the companion (default {DEFAULT_HIL})")
+    p.add_argument("--hil", default=DEFAULT_HIL, metavar="udp:HOST:PORT|tcp:HOST:PORT|udpout:HOST:PORT",
+                   help=f"address to listen on for the companion (default {DEFAULT_HIL}); for PX4: "
+                        "tcp:127.0.0.1:4560+N to listen for PX4 instance N (simulator_mavlink -c), "
+                        "udpout:HOST:PORT to send first to a PX4 started with simulator_mavlink -u PORT")
     p.add_argument("--gcs", default=DEFAULT_GCS, metavar="udp:HOST:PORT",
                    help=f"ground station to send telemetry to (default {DEFAULT_GCS})")
     p.add_argument("--offboard", default=None, metavar="udp:HOST:PORT",
@@ -75,11 +78,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--status-interval", type=float, default=5.0, metavar="S",
                    help="wall seconds between status lines (default 5; 0 turns them off)")
     p.add_argument("--max-steps", type=int, default=None, metavar="N", help="exit after N steps")
-    p.add_argument("--companion-sysid", type=int, default=1, metavar="ID",
-                   help="system id the companion sends from (default 1); other ids are dropped")
     p.add_argument("--ardupilot", nargs="?", const=DEFAULT_ARDUPILOT, default=None, metavar="udp:HOST:PORT",
                    help="be ArduPilot's JSON physics instead of PX4's HIL simulator: listen for its servo "
                         f"packets there (default {DEFAULT_ARDUPILOT}; 9002+10*N for arducopter -I N)")
+    p.add_argument("--max-rtf", type=float, default=0.0, metavar="R",
+                   help="with tcp:/udpout: lockstep, but at most R times real time (1: paced to the wall "
+                        "clock, for an offboard companion beside PX4); default 0, as fast as the autopilot")
+    p.add_argument("--companion-sysid", type=int, default=None, metavar="ID",
+                   help="system id the companion sends from (default 1; with tcp:/udpout: any, PX4 "
+                        "instance N sends from N+1); other ids are dropped")
     p.set_defaults(func=run)
 
 
@@ -105,9 +112,11 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
     if not (math.isfinite(args.status_interval) and args.status_interval >= 0):
         raise UserError(f"--status-interval must be >= 0 seconds, got {args.status_interval}")
+    if not (math.isfinite(args.max_rtf) and args.max_rtf >= 0):
+        raise UserError(f"--max-rtf must be >= 0 (0: no limit), got {args.max_rtf}")
     if args.max_steps is not None and args.max_steps < 0:
         raise UserError(f"--max-steps must be >= 0, got {args.max_steps}")
-    if not 1 <= args.companion_sysid <= 255:
+    if args.companion_sysid is not None and not 1 <= args.companion_sysid <= 255:
         raise UserError(f"--companion-sysid must be 1..255, got {args.companion_sysid}")
     ground_endpoints = []
     if not args.no_gcs:
@@ -119,7 +128,7 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
         raise UserError(f"--log {log} is a directory", hint="give a file name such as flight.tlog")
     return SitlOptions(
         vehicle=vehicle,
-        hil=parse_endpoint(args.hil),
+        hil=parse_hil_address(args.hil),
         ground=ground_endpoints,
         mode=args.mode,
         log=log,
@@ -129,12 +138,21 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
         realtime_timeout=args.realtime_timeout,
         status_interval=args.status_interval,
         max_steps=args.max_steps,
-        companion_sysid=args.companion_sysid,
+        companion_sysid=args.companion_sysid or 1,
     )
+
+
+def parse_hil_address(text: str) -> Endpoint:
+    """--hil: udp:/udpin: (a companion), tcp: (listen for PX4) or udpout: (send first to PX4)."""
+    from bridge.link import parse_endpoint
+    from bridge.stream_link import is_tcp_address, parse_tcp_endpoint
+
+    return parse_tcp_endpoint(text) if is_tcp_address(text) else parse_endpoint(text)
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the SITL until SIGINT/SIGTERM (exit 0) or --max-steps."""
+    from sitl.autopilot_server import AutopilotSitlServer, serves_autopilot
     from sitl.server import SitlServer
 
     options = options_from_args(args)
@@ -142,8 +160,9 @@ def run(args: argparse.Namespace) -> int:
         from sitl.ardupilot_server import ArduPilotServer
 
         return ArduPilotServer(ardupilot_options(args, options)).run()
-    server = SitlServer(options)
-    return server.run()
+    if serves_autopilot(options):
+        return AutopilotSitlServer(options, autopilot_sysid=args.companion_sysid, max_rtf=args.max_rtf).run()
+    return SitlServer(options).run()
 
 
 def ardupilot_options(args: argparse.Namespace, sitl: SitlOptions) -> ArduPilotOptions:

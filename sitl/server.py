@@ -71,14 +71,7 @@ class SitlServer:
         )
         self.sensors = SensorModel(v.sensors, v.home, v.simulation.seed)
         signing = Signing(options.signing_key, link_id=0) if options.signing_key else None
-        self.link = UdpLink(
-            local=options.hil,
-            system_id=SYSTEM_ID,
-            component_id=HIL_COMPONENT_ID,
-            signing=signing,
-            tlog=str(options.log) if options.log else None,
-            accept_system_ids=[options.companion_sysid],
-        )
+        self.link = self._open_link(signing)
         self.encoder = HilEncoder(v.home, self.link)
         try:
             self.ground = GroundLink(
@@ -104,6 +97,18 @@ class SitlServer:
         self._next_status = self._t_start + options.status_interval if options.status_interval else math.inf
         self._status_steps = 0
         self._status_wall = self._t_start
+
+    def _open_link(self, signing: Signing | None) -> UdpLink:
+        """The HIL link: UDP bound to the --hil address, accepting the companion's system id."""
+        o = self.options
+        return UdpLink(
+            local=o.hil,
+            system_id=SYSTEM_ID,
+            component_id=HIL_COMPONENT_ID,
+            signing=signing,
+            tlog=str(o.log) if o.log else None,
+            accept_system_ids=[o.companion_sysid],
+        )
 
     # -------------------------------------------------------------------------------------------------
     # Running

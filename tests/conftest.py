@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
-import os
 import re
-import signal
 import socket
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
+from quadsr.child_process import OutputProcess
+
 REPO = Path(__file__).resolve().parent.parent
-LISTENING = re.compile(r"listening for the companion on (udp:[\d.]+:(\d+))")
+LISTENING = re.compile(r"(?:listening for the (?:companion|autopilot) on|sending to the autopilot at) "
+                       r"((?:udp|tcp):[\d.]+:(\d+))")
 
 
 def free_udp_port() -> int:
@@ -32,59 +31,23 @@ def udp_port() -> int:
     return free_udp_port()
 
 
-class SitlProcess:
+class SitlProcess(OutputProcess):
     """A running `quadsr sitl` subprocess: its HIL address, its output lines, and how to stop it."""
 
     def __init__(self, args: list[str], timeout: float = 20.0):
-        self.args = args
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "quadsr.cli", "sitl", *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            cwd=REPO,
-            env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        )
-        self.lines: list[str] = []
-        self._cond = threading.Condition()
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
+        super().__init__([sys.executable, "-m", "quadsr.cli", "sitl", *args], cwd=REPO)
         match = self.wait_for(LISTENING, timeout)
         self.hil = match.group(1)
         self.hil_port = int(match.group(2))
 
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            with self._cond:
-                self.lines.append(line.rstrip("\n"))
-                self._cond.notify_all()
-        with self._cond:
-            self._cond.notify_all()
-
-    @property
-    def output(self) -> str:
-        """Everything printed so far."""
-        with self._cond:
-            return "\n".join(self.lines)
-
     def wait_for(self, pattern: str | re.Pattern, timeout: float = 10.0, start: int = 0) -> re.Match:
         """The first output line (from index start) matching pattern; fails the test after timeout s."""
-        rx = re.compile(pattern) if isinstance(pattern, str) else pattern
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            while True:
-                for line in self.lines[start:]:
-                    m = rx.search(line)
-                    if m:
-                        return m
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.proc.poll() is not None and not self._reader.is_alive()):
-                    raise AssertionError(
-                        f"SITL printed no line matching {rx.pattern!r} within {timeout} s "
-                        f"(exit code {self.proc.poll()}); output:\n" + "\n".join(self.lines)
-                    )
-                self._cond.wait(min(remaining, 0.1))
+        m = self.find(pattern, timeout, start)
+        if m is None:
+            rx = re.compile(pattern) if isinstance(pattern, str) else pattern
+            raise AssertionError(f"SITL printed no line matching {rx.pattern!r} within {timeout} s "
+                                 f"(exit code {self.proc.poll()}); output:\n{self.output}")
+        return m
 
     def status_lines(self) -> list[str]:
         """The status lines printed so far."""
@@ -94,18 +57,6 @@ class SitlProcess:
     def signal(self, signum: int) -> None:
         """Send a signal to the SITL."""
         self.proc.send_signal(signum)
-
-    def stop(self, timeout: float = 10.0) -> int:
-        """SIGTERM, wait, and return the exit code (SIGKILL after timeout s)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._reader.join(5.0)
-        return self.proc.returncode
 
 
 @pytest.fixture

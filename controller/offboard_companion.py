@@ -1,0 +1,214 @@
+"""The companion through an autopilot's offboard interface (PX4 OFFBOARD), as on a real vehicle.
+
+The model-derived backstepping controller runs on the autopilot's own estimate (LOCAL_POSITION_NED,
+ATTITUDE_QUATERNION, requested at `rate_hz` of the autopilot's clock) and sends, for every attitude message,
+SET_ATTITUDE_TARGET: the outer loop's desired attitude (phi_d, theta_d from the model inversion, the
+reference yaw) and the collective f1 = sum of w_i^2 (rad/s)^2 of the inner solve, normalised through PX4's
+thrust model fitted to the vehicle's motor curve (bridge.px4_thrust). Sequence: setpoints streamed for
+`prestream_s` before the switch (PX4 requires them), OFFBOARD, arm, fly `duration` s of the autopilot's
+clock, then AUTO.LOITER (the autopilot holds where the flight ended).
+
+What the autopilot does is watched: a rejected mode switch or arming ends the flight before it starts, a
+mode change away from OFFBOARD (PX4's offboard-loss failsafe, or a pilot/GCS) and a disarm end it, and so does
+silence for `link_timeout` wall s. Metrics and figures as `quadsr fly`'s, from quadsr's truth log (the SITL's
+--log, given as `truth`) over the flight's window of simulated time, else from the autopilot's estimate.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from bridge.messages import euler_from_quaternion, mavlink, quaternion_from_euler
+from bridge.offboard import PX4, OffboardLink
+from bridge.px4_thrust import fit_thrust_model, normalised_thrust
+from bridge.tlog import TlogWriter, read_tlog
+from bridge.vehicle import VehicleConfig
+from controller.companion import CRASH_TILT, CSV_COLUMNS, Companion, FlightResult, FlightSettings, StepLog
+from controller.plugin import Controller, Trajectory, VehicleState
+
+OFFBOARD_LOSS_MS = 1000  # PX4's COM_OF_LOSS_T default (1 s): setpoints older than this trip its failsafe
+TRUTH_COLUMNS = ("true_x", "true_y", "true_z", "true_vx", "true_vy", "true_vz", "true_phi", "true_theta",
+                 "true_psi")
+
+
+@dataclass(frozen=True)
+class OffboardSettings:
+    """How to fly through the autopilot: its address, flight length [s of its clock], rates, timeouts."""
+
+    autopilot: str  # udp:HOST:PORT of its offboard link (PX4 instance N: udp:127.0.0.1:14580+N)
+    duration: float = 20.0
+    rate_hz: float = 100.0  # attitude and position messages requested, Hz of the autopilot's clock
+    prestream_s: float = 1.0  # setpoints streamed before the mode switch, s of the autopilot's clock
+    truth: Path | None = None  # quadsr's truth .tlog (the SITL's --log) for metrics
+    link_timeout: float = 2.0  # wall s without a message from the autopilot: the flight ends
+    connect_timeout: float = 30.0  # wall s for its first HEARTBEAT and estimate
+    progress: bool = False
+
+
+class OffboardCompanion(Companion):
+    """One flight of the backstepping controller through an autopilot's OFFBOARD mode (see module doc)."""
+
+    def __init__(self, controller: Controller, trajectory: Trajectory, vehicle: VehicleConfig,
+                 settings: OffboardSettings):
+        super().__init__(controller, trajectory, vehicle, FlightSettings(duration=settings.duration,
+                                                                         progress=False))
+        self.offboard = settings
+        self.thrust_factor = fit_thrust_model(vehicle)[0]
+        self._speeds = np.zeros(4)
+
+    def setpoint(self, t: float, state: VehicleState, trajectory_t: float):
+        """(controller command, attitude quaternion, normalised thrust) for the state at t [s]."""
+        ref = self.trajectory.reference(trajectory_t)
+        cmd = self.controller.update(t, state, ref)
+        info = cmd.info
+        q = quaternion_from_euler(float(info["phi_d"]), float(info["theta_d"]), float(ref.yaw))
+        thrust = normalised_thrust(self.vehicle, self.thrust_factor, float(info["f"][0]))
+        return ref, cmd, q, thrust
+
+    def fly(self, out_dir: str | Path) -> FlightResult:
+        """Connect, stream, switch to OFFBOARD, arm, fly, hand back (AUTO.LOITER); outputs to out_dir."""
+        s = self.offboard
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        files = {"tlog": out / "flight.tlog", "steps": out / "steps.csv"}
+        tlog = TlogWriter(files["tlog"])
+        log = StepLog(files["steps"])
+        link = OffboardLink(s.autopilot, PX4, tlog)
+        completed = crashed = False
+        message = ""
+        t0_ms = None
+        try:
+            message = self._start(link)
+            if not message:
+                t0_ms, completed, crashed, message = self._loop(link, log)
+                link.set_mode(PX4.hold)
+        finally:
+            link.close()
+            tlog.close()
+            log.close()
+        if t0_ms is not None and s.truth is not None and log.rows:
+            self._fill_truth(log, s.truth, t0_ms)
+        metrics = self._finish(log, out, files, completed, crashed) if log.rows else None
+        return FlightResult(metrics, completed, crashed, message, len(log.rows), out, files,
+                            link.link.stats.as_dict(), list(link.state.status_texts))
+
+    # -------------------------------------------------------------------------------------------------
+    def _start(self, link: OffboardLink) -> str:
+        """Connect, request the estimate, pre-stream, OFFBOARD, arm: '' when flying, else why not."""
+        s = self.offboard
+        try:
+            link.connect(s.connect_timeout)
+        except TimeoutError as exc:
+            return f"{exc}: is PX4 running (quadsr px4)? its offboard port is 14580+N"
+        for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
+            link.request_rate(msg_id, s.rate_hz)
+        st = link.state
+        deadline = time.monotonic() + s.connect_timeout
+        while st.position is None or st.quaternion is None:
+            if time.monotonic() > deadline:
+                return f"PX4 at {s.autopilot} sent no position and attitude within {s.connect_timeout:g} s"
+            link.poll(0.1)
+        yaw = float(euler_from_quaternion(st.quaternion)[2])
+        level = quaternion_from_euler(0.0, 0.0, yaw)
+        start_ms = st.time_boot_ms
+        while st.time_boot_ms - start_ms < s.prestream_s * 1000.0:
+            link.attitude_target(level, 0.0)
+            if not link.poll(0.05) and time.monotonic() - st.last_heard > s.link_timeout:
+                return f"PX4 went silent for {s.link_timeout:g} s while setpoints were streamed"
+        result = link.set_mode(PX4.offboard)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            return f"PX4 rejected the switch to OFFBOARD ({_result_name(result)}){_said(link)}"
+        result = link.arm()
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            link.set_mode(PX4.hold)
+            return f"PX4 refused to arm ({_result_name(result)}){_said(link)}"
+        return ""
+
+    def _loop(self, link: OffboardLink, log: StepLog) -> tuple[int, bool, bool, str]:
+        """The flight: one setpoint per new attitude message; (t0 ms, completed, crashed, message)."""
+        s = self.offboard
+        st = link.state
+        t0_ms = st.attitude_ms
+        self.controller.reset()
+        last_ms = -1
+        in_offboard = False
+        while True:
+            if not link.poll(0.05) and time.monotonic() - st.last_heard > s.link_timeout:
+                return t0_ms, False, False, (f"link lost: nothing from PX4 at {s.autopilot} for "
+                                             f"{s.link_timeout:g} s")
+            if link.in_mode(PX4.offboard):
+                in_offboard = True
+            elif in_offboard:
+                return t0_ms, False, False, (f"PX4 left OFFBOARD (custom mode {st.custom_mode:#x}): its "
+                                             f"offboard-loss failsafe or a pilot/GCS switch{_said(link)}")
+            if not st.armed and in_offboard:
+                return t0_ms, False, False, f"PX4 disarmed{_said(link)}"
+            if last_ms >= 0 and st.time_boot_ms - last_ms > OFFBOARD_LOSS_MS:
+                return t0_ms, False, False, (
+                    f"no setpoint for {(st.time_boot_ms - last_ms) * 1e-3:.1f} s of PX4's clock (this "
+                    f"process stalled): past PX4's offboard-loss timeout (COM_OF_LOSS_T, "
+                    f"{OFFBOARD_LOSS_MS / 1000:g} s), its failsafe took over{_said(link)}")
+            if st.attitude_ms == last_ms:
+                continue
+            last_ms = st.attitude_ms
+            t = (last_ms - t0_ms) * 1e-3
+            if t >= s.duration:
+                return t0_ms, True, False, ""
+            start = time.perf_counter()
+            phi, theta, psi = (float(a) for a in euler_from_quaternion(st.quaternion))
+            xi = np.array([*st.position, *st.velocity, phi, theta, psi, *st.rates])
+            state = VehicleState(xi, self._speeds, np.array(st.quaternion))
+            c0 = time.perf_counter()
+            ref, cmd, q, thrust = self.setpoint(t, state, t)
+            control = time.perf_counter() - c0
+            link.attitude_target(q, thrust)
+            self._speeds = np.asarray(cmd.rotor_speeds, dtype=float)
+            loop = time.perf_counter() - start
+            log.add([t, *ref.position, *ref.velocity, ref.yaw, *xi, *([math.nan] * 9), *self._speeds,
+                     *self._speeds, *([thrust] * 4), float(cmd.saturated), control * 1e6, loop * 1e6])
+            tilt = math.acos(max(-1.0, min(1.0, math.cos(phi) * math.cos(theta))))
+            if tilt > CRASH_TILT:
+                return t0_ms, False, True, f"crash at t = {t:.2f} s: tilt {math.degrees(tilt):.0f} deg"
+
+    def _fill_truth(self, log: StepLog, truth: Path, t0_ms: int) -> None:
+        """Put quadsr's truth (interpolated at each step's simulated time) in the rows, rewrite steps.csv."""
+        pos_t, pos, att_t, att = [], [], [], []
+        for _, msg in read_tlog(truth):
+            kind = msg.get_type()
+            if kind == "LOCAL_POSITION_NED":
+                pos_t.append(msg.time_boot_ms)
+                pos.append((msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz))
+            elif kind == "HIL_STATE_QUATERNION":
+                att_t.append(msg.time_usec * 1e-3)
+                att.append(euler_from_quaternion(msg.attitude_quaternion))
+        if len(pos_t) < 2 or len(att_t) < 2:
+            return
+        times = np.array([row[0] for row in log.rows]) * 1e3 + t0_ms
+        pos_a, att_a = np.array(pos), np.unwrap(np.array(att), axis=0)
+        first = CSV_COLUMNS.index(TRUTH_COLUMNS[0])
+        columns = [np.interp(times, pos_t, pos_a[:, i]) for i in range(6)]
+        columns += [np.interp(times, att_t, att_a[:, i]) for i in range(3)]
+        for k, row in enumerate(log.rows):
+            row[first:first + 9] = [float(c[k]) for c in columns]
+        with log.path.open("w", newline="", encoding="utf-8") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(CSV_COLUMNS)
+            writer.writerows([f"{v:.9g}" for v in row] for row in log.rows)
+
+
+def _result_name(result: int | None) -> str:
+    if result is None:
+        return "no acknowledgement"
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return entry.name if entry is not None else str(result)
+
+
+def _said(link: OffboardLink) -> str:
+    texts = link.state.status_texts[-3:]
+    return ("; PX4 said: " + " | ".join(texts)) if texts else ""

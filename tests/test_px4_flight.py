@@ -1,0 +1,119 @@
+"""Real PX4 (../shared/px4) flies quadsr's SITL through `quadsr px4`, driven over PX4's GCS MAVLink link.
+
+One PX4 boot is shared by the module (the kill test ends it, so it runs last). Waits are on PX4's events and
+on simulated time (PX4's time_boot_ms in lockstep), with wall bounds only as a safety net.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import signal
+import time
+
+import pytest
+from px4_run import PX4_DIR, Gcs, QuadsrPx4, gone, mav
+
+from bridge.tlog import read_tlog
+from quadsr.px4_launch import Px4Ports, free_instance
+
+HOVER_ALT = 2.5  # m, PX4's default takeoff altitude (MIS_TAKEOFF_ALT)
+
+
+@pytest.fixture(scope="module")
+def px4_flight(tmp_path_factory):
+    """`quadsr px4` on a free instance with ideal sensors, ready for takeoff; a GCS connected to it."""
+    instance = free_instance(60, 120)
+    work = tmp_path_factory.mktemp("px4")
+    started = time.monotonic()
+    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", str(instance), "--work", str(work),
+                    "--sensors", "ideal")
+    try:
+        run.wait_for("is flying quadsr's SITL", 60.0)
+        run.wait_for("ready for takeoff", max(1.0, 60.0 - (time.monotonic() - started)))
+        ready_wall = time.monotonic() - started
+        gcs = Gcs(Px4Ports(instance).gcs, instance + 1)
+        gcs.connect()
+        yield run, gcs, work, ready_wall
+        gcs.close()
+    finally:
+        run.stop()
+
+
+def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
+    run, gcs, work, ready_wall = px4_flight
+    assert ready_wall < 60.0
+    assert "autopilot connected" in (work / "sitl.log").read_text()
+    assert "SYS_AUTOSTART=10099" in (work / "px4.log").read_text()  # the matched airframe
+    gcs.run_until(lambda g: g.position is not None, sim_s=5.0)
+    x0, y0, _ = gcs.position
+    assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    assert gcs.takeoff() == mav.MAV_RESULT_ACCEPTED
+    gcs.run_until(lambda g: g.position[2] < -(HOVER_ALT - 0.1), sim_s=20.0)
+    settle_until = gcs.sim_ms + 8000  # PX4 settles its height estimate within ~8 s (see README)
+    gcs.run_until(lambda g: g.sim_ms >= settle_until, sim_s=10.0)
+    worst = 0.0
+    end = gcs.sim_ms + 10000
+    samples = 0
+    while gcs.sim_ms < end:
+        msg = gcs.recv(1.0)
+        if msg is not None and msg.get_type() == "LOCAL_POSITION_NED":
+            x, y, z = gcs.position
+            worst = max(worst, math.dist((x, y, z), (x0, y0, -HOVER_ALT)))
+            samples += 1
+    assert samples > 100  # 50 Hz for 10 s
+    assert worst < 0.10, f"hover strayed {worst:.3f} m from ({x0:.2f}, {y0:.2f}, {-HOVER_ALT})"
+    assert gcs.armed
+    assert gcs.command(mav.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, math.nan, math.nan, math.nan) == \
+        mav.MAV_RESULT_ACCEPTED
+    gcs.run_until(lambda g: g.landed_state == mav.MAV_LANDED_STATE_ON_GROUND and not g.armed, sim_s=30.0)
+    # The truth (quadsr's log, simulated time = PX4's): the same hover held within 10 cm, then on the ground.
+    truth = [(m.time_boot_ms, (m.x, m.y, m.z)) for _, m in read_tlog(work / "truth.tlog")
+             if m.get_type() == "LOCAL_POSITION_NED"]
+    window = [p for t, p in truth if end - 10000 <= t <= end]
+    assert len(window) > 2000  # 250 Hz
+    assert max(math.dist(p, (x0, y0, -HOVER_ALT)) for p in window) < 0.10
+    assert truth[-1][1][2] > -0.02
+
+
+def test_px4_killed_mid_flight_stops_everything_with_a_clear_message(px4_flight):
+    run, gcs, work, _ = px4_flight
+    gcs.drain()
+    assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mav.MAV_RESULT_ACCEPTED
+    assert gcs.takeoff() == mav.MAV_RESULT_ACCEPTED
+    gcs.run_until(lambda g: g.position[2] < -1.0, sim_s=20.0)
+    os.kill(run.px4_pid, signal.SIGKILL)
+    code = run.proc.wait(60.0)
+    run.wait_for("PX4 and the SITL stopped", 5.0)
+    assert code == 1
+    assert "error: PX4 exited (code -9)" in run.output
+    assert "Traceback" not in run.output
+    assert gone(run.sitl_pid) and gone(run.px4_pid)
+    assert "autopilot disconnected" in (work / "sitl.log").read_text()
+
+
+def test_px4_that_never_connects_gives_a_clear_message(tmp_path):
+    # The real PX4 program, with its simulator start-up script emptied: it boots but never connects.
+    build = tmp_path / "px4-nosim"
+    (build / "bin").mkdir(parents=True)
+    (build / "bin" / "px4").symlink_to(PX4_DIR / "bin" / "px4")
+    for entry in (PX4_DIR / "bin").iterdir():
+        if entry.name.startswith("px4-"):
+            shutil.copy(entry, build / "bin" / entry.name)
+    shutil.copytree(PX4_DIR / "etc", build / "etc")
+    sim = build / "etc" / "init.d-posix" / "px4-rc.simulator"
+    sim.chmod(0o644)
+    sim.write_text("#!/bin/sh\necho 'simulator start-up removed for this test'\n")
+    instance = free_instance(121, 180)
+    run = QuadsrPx4("--px4", str(build), "--instance", str(instance), "--work", str(tmp_path / "work"),
+                    "--connect-timeout", "5")
+    try:
+        code = run.proc.wait(90.0)
+    finally:
+        run.stop()
+    run.wait_for("PX4 and the SITL stopped", 5.0)
+    assert code == 1
+    assert f"PX4 did not connect to the simulator on tcp:127.0.0.1:{4560 + instance} within 5 s" in run.output
+    assert "Traceback" not in run.output
+    assert gone(run.sitl_pid) and gone(run.px4_pid)

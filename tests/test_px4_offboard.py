@@ -1,0 +1,116 @@
+"""The companion through real PX4 OFFBOARD: `quadsr fly --autopilot` against `quadsr px4 --mode realtime`.
+
+One PX4 boot (real-time pacing, as a companion on a real vehicle lives) serves the module, in order: Case II
+to within 10 cm of (2, 4, z_d) by 8 s (quadsr's truth), then PX4's own offboard-loss failsafe (the companion
+frozen with SIGSTOP until PX4 reports it left OFFBOARD), then a forced disarm. Instance N <= 9 so that every
+companion run answers from PX4's offboard remote port 14540+N (PX4 keeps its first partner).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import signal
+import subprocess
+import sys
+
+import pytest
+from px4_run import PX4_DIR, REPO, Gcs, QuadsrPx4, mav
+
+from bridge.vehicle import load_vehicle
+from identification.true_model import write_true_model
+from quadsr.px4_launch import Px4Ports, free_instance
+
+OFFBOARD = 6 << 16  # PX4 main mode in HEARTBEAT.custom_mode
+
+
+@pytest.fixture(scope="module")
+def px4_rt(tmp_path_factory):
+    """`quadsr px4 --mode realtime` (ideal sensors) ready for takeoff, a GCS on it, the true model file."""
+    instance = free_instance(1, 9)
+    work = tmp_path_factory.mktemp("px4rt")
+    model = work / "true.yaml"
+    write_true_model(load_vehicle("fang-chen-buaa"), model)
+    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", str(instance), "--work", str(work), "--sensors",
+                    "ideal", "--mode", "realtime")
+    try:
+        run.wait_for("ready for takeoff", 90.0)
+        gcs = Gcs(Px4Ports(instance).gcs, instance + 1)
+        gcs.connect()
+        yield run, gcs, work, model, Px4Ports(instance).offboard
+        gcs.close()
+    finally:
+        run.stop()
+
+
+def in_offboard(gcs: Gcs) -> bool:
+    """True if PX4's last HEARTBEAT said OFFBOARD."""
+    return gcs.custom_mode is not None and gcs.custom_mode & 0xFF0000 == OFFBOARD
+
+
+def fly(work, model, port, out, trajectory="case2", duration=8.5) -> subprocess.Popen:
+    """`quadsr fly --autopilot` as a separate process."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "quadsr.cli", "fly", "--model", str(model), "--trajectory", str(trajectory),
+         "--duration", str(duration), "--autopilot", f"udp:127.0.0.1:{port}", "--truth",
+         str(work / "truth.tlog"), "--out", str(out), "--no-progress"],
+        cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_case2_through_px4_offboard(px4_rt, tmp_path):
+    run, gcs, work, model, port = px4_rt
+    proc = fly(work, model, port, tmp_path / "case2")
+    output, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 0, output
+    rows = list(csv.DictReader((tmp_path / "case2" / "steps.csv").open()))
+    times = [float(r["t"]) for r in rows]
+    assert len(rows) >= 50 * 8.5  # setpoints at >= 50 Hz of PX4's clock
+    assert max(b - a for a, b in zip(times, times[1:], strict=False)) < 0.1
+    late = [r for r in rows if float(r["t"]) >= 8.0]
+    assert late
+    for r in late:
+        t = float(r["t"])
+        truth = (float(r["true_x"]), float(r["true_y"]), float(r["true_z"]))
+        assert math.dist(truth, (2.0, 4.0, -0.3 * t)) < 0.10, (t, truth)
+    assert (tmp_path / "case2" / "metrics.md").is_file() and (tmp_path / "case2" / "tracking.png").is_file()
+    assert "(truth)" in output
+
+
+def test_offboard_loss_failsafe_ends_the_flight_with_a_clear_message(px4_rt, tmp_path):
+    run, gcs, work, model, port = px4_rt
+    hold = tmp_path / "hold.yaml"
+    hold.write_text('name: hold\nduration: 60\nexpressions: {x: "2", y: "4", z: "-2.5", yaw: "0"}\n')
+    gcs.drain()
+    proc = fly(work, model, port, tmp_path / "loss", hold, 60)
+    gcs.run_until(in_offboard, sim_s=30.0)
+    os.kill(proc.pid, signal.SIGSTOP)  # the companion freezes: no more setpoints
+    try:
+        gcs.run_until(lambda g: not in_offboard(g), sim_s=10.0)
+    finally:
+        os.kill(proc.pid, signal.SIGCONT)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 4, output
+    # the companion sees PX4 leave OFFBOARD, or (its queue overflowed while frozen) that its setpoints
+    # stopped for longer than PX4's offboard-loss timeout
+    assert "PX4 left OFFBOARD" in output or "past PX4's offboard-loss timeout" in output, output
+    assert "Traceback" not in output
+    assert gcs.armed  # PX4's failsafe keeps flying (hold or land), the companion stopped commanding
+
+
+def test_disarm_ends_the_flight_with_a_clear_message(px4_rt, tmp_path):
+    run, gcs, work, model, port = px4_rt
+    hold = tmp_path / "hold.yaml"
+    hold.write_text('name: hold\nduration: 60\nexpressions: {x: "2", y: "4", z: "-1.0", yaw: "0"}\n')
+    gcs.drain()
+    proc = fly(work, model, port, tmp_path / "disarm", hold, 60)
+    try:
+        gcs.run_until(lambda g: in_offboard(g) and g.armed, sim_s=30.0)
+        gcs.run_until(lambda g: g.position[2] < -0.5, sim_s=20.0)
+    except AssertionError as exc:
+        proc.kill()
+        raise AssertionError(f"{exc}\nquadsr fly said:\n{proc.communicate()[0]}") from None
+    assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == mav.MAV_RESULT_ACCEPTED  # forced
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 4, output
+    assert "PX4 disarmed" in output and "Traceback" not in output
