@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 
-from bridge.vehicle import VehicleConfig
+from bridge.vehicle import VehicleConfig, px4_thrust  # noqa: F401  (px4_thrust is this module's model too)
 
 FIT_POINTS = 201  # throttle samples of the fit
 
@@ -18,11 +18,6 @@ def thrust_fraction(vehicle: VehicleConfig, u: float) -> float:
     """The vehicle's steady rotor thrust at output u in [0, 1], as a fraction of full thrust."""
     curve = vehicle.motor_curve
     return (curve.speed_for_throttle(u) / curve.max_speed) ** 2
-
-
-def px4_thrust(factor: float, u: float) -> float:
-    """PX4's normalised thrust (1-f) u + f u^2 at output u in [0, 1] (f = THR_MDL_FAC)."""
-    return (1.0 - factor) * u + factor * u * u
 
 
 def fit_thrust_model(vehicle: VehicleConfig) -> tuple[float, float]:

@@ -38,6 +38,11 @@ GROUND_MODELS = ("plane", "none")
 THRUST_MODELS = ("linear", "px4", "polynomial")
 
 
+def px4_thrust(factor: float, u: float) -> float:
+    """PX4's normalised thrust (1-f) u + f u^2 at output u in [0, 1] (f = THR_MDL_FAC)."""
+    return (1.0 - factor) * u + factor * u * u
+
+
 @dataclass(frozen=True)
 class MotorCurve:
     """Throttle sigma in [0, 1] <-> steady rotor speed w (rad/s), one of three curves:
@@ -66,8 +71,7 @@ class MotorCurve:
     def _raw_speed(self, s: float) -> float:
         """The curve's formula at throttle s in [0, 1], before clipping (rad/s)."""
         if self.kind == "px4":
-            f = self.thr_mdl_fac
-            return self.full_speed * math.sqrt(max((1.0 - f) * s + f * s * s, 0.0))
+            return self.full_speed * math.sqrt(max(px4_thrust(self.thr_mdl_fac, s), 0.0))
         if self.kind == "polynomial":
             out = 0.0
             for c in reversed(self.coefficients):

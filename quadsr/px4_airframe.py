@@ -3,7 +3,8 @@ the simulated vehicle (`quadsr px4-airframe`, and the airframe `quadsr px4` adds
 
 What is matched (PX4 parameter: from the vehicle):
 - CA_ROTORn_PX/PY/PZ (m, body FRD) and CA_ROTORn_KM (moment ratio Cm/Ct, + for a counter-clockwise rotor):
-  from bridge.rotors.rotors_of (motor order 1..4 = PX4 outputs 1..4, PWM_MAIN_FUNCn 101..104).
+  from the vehicle's rotor set (VehicleConfig.rotor_set), positions from its centre of gravity (motor
+  order 1..4 = PX4 outputs 1..4, PWM_MAIN_FUNCn 101..104).
 - THR_MDL_FAC: PX4 models normalised thrust as (1-f) u + f u^2 of the output u in [0, 1]; the vehicle's
   thrust fraction is (w(u)/w_max)^2 with w = Cr u + wb clipped at 0. f is the least-squares fit over
   u in [0, 1], clipped to PX4's [0, 1].
@@ -22,7 +23,6 @@ from dataclasses import dataclass
 
 from bridge.errors import UserError
 from bridge.px4_thrust import fit_thrust_model, px4_thrust
-from bridge.rotors import rotors_of
 from bridge.vehicle import VehicleConfig
 
 AIRFRAME_ID = 10099  # SYS_AUTOSTART of quadsr's airframes (free in PX4's init.d-posix/airframes)
@@ -97,12 +97,12 @@ def airframe_for(vehicle: VehicleConfig) -> Px4Airframe:
     spin_up = curve.throttle_for_speed(0.1 * curve.max_speed)  # rotors at 10% of full speed
     thr_min = min(max(0.05, px4_thrust(factor, spin_up)), 0.5 * hover)
     params: dict[str, float | int] = {"CA_AIRFRAME": 0, "CA_ROTOR_COUNT": 4}
-    ratio = vehicle.moment_coefficient / vehicle.thrust_coefficient
-    for i, rotor in enumerate(rotors_of(vehicle)):
-        params[f"CA_ROTOR{i}_PX"] = round(rotor.x, 6)
-        params[f"CA_ROTOR{i}_PY"] = round(rotor.y, 6)
-        params[f"CA_ROTOR{i}_PZ"] = round(rotor.z, 6)
-        params[f"CA_ROTOR{i}_KM"] = round(rotor.spin * ratio, 6)
+    for i, (rotor, arm) in enumerate(zip(vehicle.rotor_set, vehicle.rotor_arms, strict=True)):
+        params[f"CA_ROTOR{i}_PX"] = round(arm[0], 6)  # m, FRD, from the centre of gravity
+        params[f"CA_ROTOR{i}_PY"] = round(arm[1], 6)
+        params[f"CA_ROTOR{i}_PZ"] = round(arm[2], 6)
+        spin = 1.0 if rotor.direction == "ccw" else -1.0  # PX4: KM > 0 for a counter-clockwise rotor
+        params[f"CA_ROTOR{i}_KM"] = round(spin * rotor.moment_coefficient / rotor.thrust_coefficient, 6)
     for i in range(4):
         params[f"PWM_MAIN_FUNC{i + 1}"] = 101 + i
     params.update({
