@@ -2,7 +2,7 @@
 
     from identification.quad_model import QuadrotorModel, load_flight, flight_from_arrays
     data = load_flight("flight.ulg")                  # airborne rows of one or more logs (a Dataset)
-    model = QuadrotorModel(budget_s=20, seed=0).fit(data)
+    model = QuadrotorModel(budget=20, seed=0).fit(data)
     model.predict(data)                               # (N,6): ax ay az (NED m/s^2), dwx dwy dwz (FRD rad/s^2)
     model.score(data)                                 # mean R^2 over the targets; scores(data) per target
     model.simulate(x0, inputs, dt=0.004)              # (N+1,12) states from x0 under rotor speeds (N,4)
@@ -23,6 +23,7 @@ import numpy as np
 import sympy
 
 from bridge.errors import UserError
+from bridge.integration import rk4_step
 from identification.dataset import load_datasets
 from identification.kinematics import euler_rates
 from identification.metrics import r2
@@ -65,16 +66,18 @@ class QuadrotorModel:
     def __init__(
         self,
         engine: str = "default",
-        budget_s: float = 60.0,
+        budget: int = 60,
         seed: int = 0,
         holdout: float = 0.2,
+        validate_fraction: float = 0.2,
         loss: str = "absolute",
         targets: Sequence[str] = TARGET_NAMES,
     ):
         self.engine = engine
-        self.budget_s = budget_s
+        self.budget = budget  # genetic-programming generations per target (an iteration budget)
         self.seed = seed
-        self.holdout = holdout
+        self.holdout = holdout  # fraction of each flight's time that picks among the candidates
+        self.validate_fraction = validate_fraction  # fraction kept for validation only
         self.loss = loss
         self.targets = tuple(targets)
         self.model_: Model | None = None
@@ -84,19 +87,23 @@ class QuadrotorModel:
 
     # -- learning ------------------------------------------------------------------------------------
     def fit(self, data: Dataset) -> QuadrotorModel:
-        """Learn each target's expression from a Dataset (held out: the last `holdout` of each flight)."""
+        """Learn each target's expression from a Dataset (fit | pick | validate time blocks per flight)."""
+        from identification.data_roles import assign_roles
         from identification.identify import identify
 
-        self.motor_, self.motor_note_ = choose_motor_model(data.split(self.holdout)[0])
+        roles = assign_roles(data, pick_fraction=self.holdout, validate_fraction=self.validate_fraction)
+        fit_rows = roles.fit
+        self.motor_, self.motor_note_ = choose_motor_model(fit_rows)
         if self.motor_ is not None:
             data = apply_thrust_curve(data, self.motor_)
         self.model_ = identify(
             data,
             engine=self.engine,
             targets=self.targets,
-            budget_s=self.budget_s,
+            budget=self.budget,
             seed=self.seed,
-            holdout=self.holdout,
+            pick_fraction=self.holdout,
+            validate_fraction=self.validate_fraction,
             loss=self.loss,
             progress=False,
         )
@@ -172,24 +179,22 @@ class QuadrotorModel:
         if inputs.shape[1] != 4 or not dt > 0:
             raise UserError(f"simulate: inputs must be (N,4) rad/s and dt > 0 s; got {inputs.shape}, dt {dt}")
 
-        def deriv(s: np.ndarray, w: np.ndarray) -> np.ndarray:
-            acc = self.predict(s[None, :], w[None, :])[0]
+        def deriv(s, w) -> list[float]:
+            s = np.asarray(s, dtype=float)
+            acc = self.predict(s[None, :], np.asarray(w, dtype=float)[None, :])[0]
             d = np.empty(12)
             d[0:3] = s[3:6]
             d[3:6] = acc[0:3]
             d[6:9] = euler_rates(s[6], s[7], s[9:12])
             d[9:12] = acc[3:6]
-            return d
+            return d.tolist()
 
         out = np.empty((len(inputs) + 1, 12))
         out[0] = x
+        state = x.tolist()
         for k, w in enumerate(inputs):
-            k1 = deriv(x, w)
-            k2 = deriv(x + 0.5 * dt * k1, w)
-            k3 = deriv(x + 0.5 * dt * k2, w)
-            k4 = deriv(x + dt * k3, w)
-            x = x + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-            out[k + 1] = x
+            state = rk4_step(deriv, state, w.tolist(), dt)  # the project's one integrator
+            out[k + 1] = state
         return out
 
     @classmethod

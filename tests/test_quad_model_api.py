@@ -16,7 +16,7 @@ from identification.true_model import write_true_model
 
 @pytest.fixture(scope="module")
 def fitted():
-    return QuadrotorModel(engine="sparse", budget_s=10.0, seed=0).fit(synthetic_dataset(3000, seed=1))
+    return QuadrotorModel(engine="sparse", budget=10, seed=0).fit(synthetic_dataset(3000, seed=1))
 
 
 def test_fit_predict_score_on_new_data(fitted):
@@ -71,9 +71,10 @@ def test_a_log_without_rotor_speeds_fits_through_its_thrust_curve(tmp_path):
 
     from identification.dataset import load_dataset
 
-    path = write_flight(tmp_path / "no_esc.bin", fly_synthetic(duration=4.0, seed=11), with_esc=False)
+    # 8 s: enough for separate fit, pick and validation blocks (with their gaps) of each flight
+    path = write_flight(tmp_path / "no_esc.bin", fly_synthetic(duration=8.0, seed=11), with_esc=False)
     data = load_dataset(path, airborne=False)
-    model = QuadrotorModel(engine="sparse", budget_s=10.0, seed=0, targets=("az",)).fit(data)
+    model = QuadrotorModel(engine="sparse", budget=10, seed=0, targets=("az",)).fit(data)
     assert model.motor_ is not None and model.motor_.k >= 0.6
     assert model.scores(data)["az"] > 0.9
     again = QuadrotorModel.load(model.save(tmp_path / "m.yaml"))
