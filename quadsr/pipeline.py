@@ -14,7 +14,6 @@ bench/track_paper.py.
 from __future__ import annotations
 
 import datetime as _dt
-import signal
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from bridge.errors import UserError
+from bridge.shutdown import StopSignals
 from bridge.vehicle import VehicleConfig, load_vehicle
 from quadsr.sitl_process import SitlProcess
 
@@ -393,10 +393,6 @@ class PaperPipeline:
         self.run.elapsed_s = time.perf_counter() - self._t0
         self.run.files["report"] = write_report(self.run)
 
-    def _on_sigterm(self, signum: int, frame: Any) -> None:
-        self._signal_name = "SIGTERM"
-        raise KeyboardInterrupt
-
     def execute(self) -> PaperRun:
         """Run every stage; raises StageFailed or StageInterrupted (after writing the partial report)."""
         r = self.run
@@ -405,10 +401,8 @@ class PaperPipeline:
             "identify": self._identify, "validate": self._validate, "track": self._track,
             "figures": self._figures,
         }
-        try:
-            previous = signal.signal(signal.SIGTERM, self._on_sigterm)
-        except ValueError:  # not the main thread: SIGTERM keeps its default
-            previous = None
+        # SIGTERM as SIGINT; a repeated signal while the report is written and children stop is absorbed.
+        signals = StopSignals(raise_interrupt=True).__enter__()
         try:
             self._write_report()
             n = len(r.stages)
@@ -420,6 +414,8 @@ class PaperPipeline:
                 try:
                     record.note = steps[record.name]()
                 except KeyboardInterrupt:
+                    if signals.requested:
+                        self._signal_name = signals.name
                     record.status, record.wall_s = "interrupted", time.perf_counter() - start
                     r.failure = f"interrupted ({self._signal_name}) during stage '{record.name}'"
                     self.children.stop_all()
@@ -442,8 +438,7 @@ class PaperPipeline:
             return r
         finally:
             self.children.stop_all()
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            signals.__exit__(None, None, None)
 
 
 def _failure_text(exc: BaseException, deaths: Sequence[str]) -> str:

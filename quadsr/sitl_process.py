@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from bridge.errors import UserError
+from bridge.shutdown import die_with_parent
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:
@@ -44,7 +45,7 @@ class SitlProcess:
         if self.log_path:
             Path(self.log_path).parent.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True, env=env)
+                                     text=True, env=env, preexec_fn=die_with_parent)
         threading.Thread(target=self._pump, daemon=True).start()
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:

@@ -9,7 +9,6 @@ commanded to zero, stepping at wall-clock pace until actuator messages return).
 from __future__ import annotations
 
 import math
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -19,6 +18,7 @@ from typing import TextIO
 from bridge.framing import unpack_frame
 from bridge.link import Endpoint, UdpLink
 from bridge.messages import Heartbeat, HilActuatorControls, mavlink
+from bridge.shutdown import StopSignals
 from bridge.signing import Signing
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
@@ -110,21 +110,20 @@ class SitlServer:
 
     def run(self) -> int:
         """Serve until SIGINT/SIGTERM or --max-steps; returns the exit code (0)."""
-        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            self._say(self._listening_line())
-            while not self._stop and not self._done():
-                if self.phase in ("waiting", "starting"):
-                    self._serve_connect()
-                elif self.phase == "failsafe" or self.options.mode == "realtime":
-                    self._serve_paced()
-                else:
-                    self._serve_lockstep()
-            self._say(self._status_line(time.monotonic()) + " (exit)")
-        finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
-            self.close()
+        # The first SIGINT/SIGTERM stops the loop; later ones are absorbed, so the shutdown always completes.
+        with StopSignals(on_stop=self.stop):
+            try:
+                self._say(self._listening_line())
+                while not self._stop and not self._done():
+                    if self.phase in ("waiting", "starting"):
+                        self._serve_connect()
+                    elif self.phase == "failsafe" or self.options.mode == "realtime":
+                        self._serve_paced()
+                    else:
+                        self._serve_lockstep()
+                self._say(self._status_line(time.monotonic()) + " (exit)")
+            finally:
+                self.close()
         return 0
 
     def close(self) -> None:
@@ -132,7 +131,8 @@ class SitlServer:
         self.link.close()
         self.ground.close()
 
-    def _on_signal(self, signum, frame) -> None:
+    def stop(self) -> None:
+        """Ask the serving loop to end (it returns within MAX_WAIT_S); safe to call any number of times."""
         self._stop = True
 
     def _done(self) -> bool:
