@@ -64,6 +64,17 @@ _ATT, _ATQ, _LPN, _GPI = map(kind, (
 ))
 
 
+MIN_INTERVAL_US = 4_000  # fastest stream a ground tool may ask for: one exchange step
+MAX_INTERVAL_US = 3_600_000_000  # slowest: once an hour
+
+
+def message_id_of(param: float) -> int:
+    """A command parameter as a MAVLink message id, or -1 if it is none (NaN, inf, fraction, out of range)."""
+    if not math.isfinite(param) or param != int(param) or not 0 <= param < 1 << 24:
+        return -1
+    return int(param)
+
+
 @dataclass
 class GroundState:
     """What the ground link reports about the vehicle at one instant."""
@@ -128,12 +139,14 @@ class _Channel:
                 return out
             except OSError:  # e.g. ECONNREFUSED reported from an earlier send
                 continue
+            # A UDP datagram holds whole frames: a partial frame left by the last one (a hostile or truncated
+            # datagram) must not swallow the start of this one.
+            self.parser.buf = bytearray()
+            self.parser.buf_index = 0
             try:
                 msgs = self.parser.parse_buffer(data) or []
             except Exception:  # a malformed frame from a ground tool must never stop the SITL
                 self.bad += 1
-                self.parser.buf = bytearray()
-                self.parser.buf_index = 0
                 continue
             for msg in msgs:
                 if msg.get_type() == "BAD_DATA":
@@ -161,6 +174,7 @@ class GroundLink:
         self.acks: list = []  # answers and queued messages, sent at the next service
         self.sent = 0
         self.commands = 0
+        self.rejected = 0  # messages that failed a check while being answered (dropped)
         self.last_clock_us: int | None = None
 
     def queue(self, msg) -> None:
@@ -214,6 +228,13 @@ class GroundLink:
                 self.sent += len(frames)
 
     def _handle(self, msg) -> None:
+        """Answer one message; any field it uses is checked first (a hostile frame never stops the SITL)."""
+        try:
+            self._answer(msg)
+        except Exception:  # noqa: BLE001 - a message no check foresaw is dropped and counted, never fatal
+            self.rejected += 1
+
+    def _answer(self, msg) -> None:
         kind = msg.get_type()
         if kind in ("COMMAND_LONG", "COMMAND_INT"):
             if msg.target_system not in (0, SYSTEM_ID) or msg.target_component not in (0, COMPONENT_ID):
@@ -235,19 +256,19 @@ class GroundLink:
     def _command(self, msg) -> int:
         command = msg.command
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            msg_id, interval = int(msg.param1), msg.param2
+            msg_id, interval = message_id_of(msg.param1), msg.param2
             if msg_id not in STREAMABLE or not math.isfinite(interval):
                 return mavlink.MAV_RESULT_UNSUPPORTED
             if interval == 0:
                 self.intervals_us[msg_id] = DEFAULT_INTERVALS_US[msg_id]
             elif interval < 0:
                 self.intervals_us[msg_id] = 0
-            else:
-                self.intervals_us[msg_id] = int(interval)
+            else:  # us; no faster than one exchange step, no slower than once an hour
+                self.intervals_us[msg_id] = int(min(max(interval, MIN_INTERVAL_US), MAX_INTERVAL_US))
             self.next_due_us.pop(msg_id, None)
             return mavlink.MAV_RESULT_ACCEPTED
         if command == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            msg_id = int(msg.param1) if math.isfinite(msg.param1) else -1
+            msg_id = message_id_of(msg.param1)
             if msg_id not in DEFAULT_INTERVALS_US:
                 return mavlink.MAV_RESULT_UNSUPPORTED
             self.requested.append(msg_id)
