@@ -95,6 +95,10 @@ class SitlServer:
         self.last_cmd_usec = -1  # time_usec stamped on the last applied actuator command
         self.last_cmd_sim_usec = 0  # simulated time when the last actuator command was applied
         self._last_reply_usec = -1  # time_usec of the last accepted actuator message, as stamped
+        self._companion_heard = 0.0  # wall time (monotonic s) the bound companion last spoke
+        # another sender may take the HIL link over only after the companion was silent this long (wall s)
+        lockstep = options.mode == "lockstep"
+        self._takeover_after = options.lockstep_timeout if lockstep else options.realtime_timeout
         self.steps = 0
         self.pending_text: list = []
         self._stop = False
@@ -312,26 +316,36 @@ class SitlServer:
     # HIL input
 
     def _read(self, frames: list, accept_from: int) -> tuple[bool, tuple | None]:
-        """(a HEARTBEAT came, the throttles of the newest actuator message with time_usec >= accept_from).
+        """(the companion spoke, the throttles of its newest reply to a HIL_SENSOR sent at >= accept_from).
 
-        frames are the link's checked, undecoded frames: only HIL_ACTUATOR_CONTROLS payloads are unpacked.
+        frames are one datagram's checked, undecoded frames: only HIL_ACTUATOR_CONTROLS payloads are unpacked.
+        Binding: only the companion's frames count; another sender is ignored (counted as foreign) until the
+        companion has been silent past the failsafe bound. A reply counts only if its time_usec is that of a
+        HIL_SENSOR the SITL sent (on the step grid, not after the last one sent) and not before accept_from.
         """
+        sender = self.link.peer
+        if sender != self.companion and self.companion is not None and (
+            time.monotonic() - self._companion_heard <= self._takeover_after
+        ):
+            self.commands.foreign += len(frames)
+            return False, None
         hello = False
         reply = None
         stats = self.commands
+        last_sent = self.last_sent_usec
         for spec, frame, header_len, signature_len in frames:
             msg_id = spec.msg_id
             if msg_id == ACTUATOR_ID:
                 values = unpack_frame(frame, header_len, signature_len, spec)  # time_usec, flags, controls..
                 time_usec = values[0]
-                throttles, nonfinite, clamped = sanitize_throttles(values[2:6])
-                stats.nonfinite += nonfinite
-                stats.clamped += clamped
-                if time_usec >= accept_from:
+                hello = True  # the companion speaks (its first reply may come before any step was sent)
+                if accept_from <= time_usec <= last_sent and time_usec % EXCHANGE_STEP_USEC == 0:
+                    throttles, nonfinite, clamped = sanitize_throttles(values[2:6])
+                    stats.nonfinite += nonfinite
+                    stats.clamped += clamped
                     reply = throttles
                     stats.commands += 1
-                    # A stamp from the future (no such step was sent) must not make later commands stale.
-                    self.last_cmd_usec = min(time_usec, self.last_sent_usec)
+                    self.last_cmd_usec = time_usec
                     self._last_reply_usec = time_usec
                 else:
                     stats.stale += 1
@@ -339,6 +353,9 @@ class SitlServer:
                 hello = True
             else:
                 stats.ignored += 1
+        if hello:
+            self.companion = sender
+            self._companion_heard = time.monotonic()
         return hello, reply
 
     def _keep_peer(self) -> None:
