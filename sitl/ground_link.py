@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge.errors import UserError
+from bridge.signing import Signing
 from sitl.hil import Framer, int16_of, int32_of, kind, lat_e7, lon_e7, part_of
 
 SYSTEM_ID = 1
@@ -106,7 +107,7 @@ class Home:
 class _Channel:
     """One UDP socket sending first to a fixed ground-tool address and parsing what comes back."""
 
-    def __init__(self, host: str, port: int):
+    def __init__(self, host: str, port: int, signing: Signing | None = None):
         try:
             address = socket.gethostbyname(host)
         except OSError:
@@ -118,8 +119,10 @@ class _Channel:
         self.sock.setblocking(False)
         self.parser = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
         self.parser.robust_parsing = True
+        self.signing = signing
         self.received = 0
         self.bad = 0
+        self.refused = 0  # unsigned, wrongly signed or replayed frames (signing on)
 
     def send(self, data: bytes) -> bool:
         """Send one datagram; a missing listener is not an error for a UDP ground link."""
@@ -151,6 +154,10 @@ class _Channel:
             for msg in msgs:
                 if msg.get_type() == "BAD_DATA":
                     self.bad += 1
+                elif self.signing is not None and self.signing.verify(
+                    bytes(msg.get_msgbuf()), msg.get_srcSystem(), msg.get_srcComponent()
+                ):
+                    self.refused += 1
                 else:
                     self.received += 1
                     out.append(msg)
@@ -163,11 +170,12 @@ class _Channel:
 class GroundLink:
     """Streams PX4-like telemetry to GCS/offboard endpoints and answers their commands."""
 
-    def __init__(self, endpoints: list[tuple[str, int]], home: Home):
-        self.channels = [_Channel(host, port) for host, port in endpoints]
+    def __init__(self, endpoints: list[tuple[str, int]], home: Home, signing: Signing | None = None):
+        """signing: sign every frame sent, accept only validly signed, fresh frames (one key, all tools)."""
+        self.channels = [_Channel(host, port, signing) for host, port in endpoints]
         self.home = home
         self.seq = 0
-        self.framer = Framer(SYSTEM_ID, COMPONENT_ID, self)
+        self.framer = Framer(SYSTEM_ID, COMPONENT_ID, self, signing)
         self.intervals_us = dict(DEFAULT_INTERVALS_US)
         self.next_due_us: dict[int, int] = {}
         self.requested: list[int] = []  # one-shot messages to send at the next service

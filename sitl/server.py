@@ -81,8 +81,10 @@ class SitlServer:
         )
         self.encoder = HilEncoder(v.home, self.link)
         try:
+            ground_signing = Signing(options.signing_key, link_id=1) if options.signing_key else None
             self.ground = GroundLink(
-                [(e.host, e.port) for e in options.ground], Home(v.home.lat, v.home.lon, v.home.alt)
+                [(e.host, e.port) for e in options.ground], Home(v.home.lat, v.home.lon, v.home.alt),
+                ground_signing,
             )
         except BaseException:
             self.link.close()
