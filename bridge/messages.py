@@ -324,6 +324,31 @@ def encode_hil_gps(*args: object) -> HilGps:
     )
 
 
+def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int, int]:
+    """Motor throttles from controls[0..3]: (throttles in [0, 1], count non-finite -> 0, count clamped).
+
+    The one rule for both seats of the HIL link: NaN and +-inf are 0 (motor off), the rest clipped to [0, 1].
+    """
+    nonfinite = 0
+    clamped = 0
+    out = []
+    for value in controls[:4]:
+        v = float(value)
+        if not math.isfinite(v):
+            nonfinite += 1
+            v = 0.0
+        elif v < 0.0:
+            clamped += 1
+            v = 0.0
+        elif v > 1.0:
+            clamped += 1
+            v = 1.0
+        out.append(v)
+    while len(out) < 4:
+        out.append(0.0)
+    return (out[0], out[1], out[2], out[3]), nonfinite, clamped
+
+
 def encode_hil_actuator_controls(*args: object, lockstep: bool = True) -> HilActuatorControls:
     """HIL_ACTUATOR_CONTROLS(time_usec, throttles): controls[0..3] = motor throttles (sent as given),
     controls[4..15] = 0, mode = SAFETY_ARMED | CUSTOM_MODE_ENABLED, flags bit 0 = lockstep."""

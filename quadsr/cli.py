@@ -43,6 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     from bridge.errors import UserError
     from bridge.shutdown import StopSignals
 
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv == ["--version"]:  # answered before any subcommand's module (numpy, sympy, ...) is imported
+        print(f"quadsr {__version__}")
+        return 0
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -225,28 +225,6 @@ def reference_messages(quad: Quadrotor, s: SensorFrame, home: HomeConfig) -> lis
     return out
 
 
-def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int, int]:
-    """Motor throttles from controls[0..3]: (throttles in [0, 1], count non-finite -> 0, count clamped)."""
-    nonfinite = 0
-    clamped = 0
-    out = []
-    for value in controls[:4]:
-        v = float(value)
-        if not math.isfinite(v):
-            nonfinite += 1
-            v = 0.0
-        elif v < 0.0:
-            clamped += 1
-            v = 0.0
-        elif v > 1.0:
-            clamped += 1
-            v = 1.0
-        out.append(v)
-    while len(out) < 4:
-        out.append(0.0)
-    return (out[0], out[1], out[2], out[3]), nonfinite, clamped
-
-
 def statustext(severity: int, text: str):
     """A STATUSTEXT message (text cut to the 50 characters MAVLink carries)."""
     return mavlink.MAVLink_statustext_message(severity, text.encode("ascii", "replace")[:50])

@@ -17,13 +17,13 @@ from typing import TextIO
 
 from bridge.framing import unpack_frame
 from bridge.link import Endpoint, UdpLink
-from bridge.messages import Heartbeat, HilActuatorControls, mavlink
+from bridge.messages import Heartbeat, HilActuatorControls, mavlink, sanitize_throttles
 from bridge.shutdown import StopSignals
 from bridge.signing import Signing
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
 from sitl.ground_link import GroundLink, GroundState, Home
-from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, HilEncoder, sanitize_throttles, statustext
+from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, HilEncoder, statustext
 from sitl.sensors import SensorModel
 from sitl.status import CommandStats, StatusSnapshot, format_status
 
