@@ -29,10 +29,9 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.geodesy import LocalFrame
 from bridge.messages import GpsSample, ImuSample, euler_from_quaternion
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
-
-EARTH_RADIUS = 6371000.0  # m, PX4's map projection sphere (as sitl.geodesy)
 
 
 @dataclass(frozen=True)
@@ -109,27 +108,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]))
 
 
-class GeodeticFrame:
-    """WGS84 (lat, lon deg; alt m AMSL) -> NED m about home: PX4's azimuthal equidistant projection."""
-
-    def __init__(self, lat: float, lon: float, alt: float):
-        self.alt = alt
-        self._lon0 = math.radians(lon)
-        self._sin0 = math.sin(math.radians(lat))
-        self._cos0 = math.cos(math.radians(lat))
-
-    def to_ned(self, lat: float, lon: float, alt: float) -> np.ndarray:
-        """NED position [m] of a geodetic point."""
-        la = math.radians(lat)
-        d_lon = math.radians(lon) - self._lon0
-        sin_lat, cos_lat, cos_d = math.sin(la), math.cos(la), math.cos(d_lon)
-        c = math.acos(max(-1.0, min(1.0, self._sin0 * sin_lat + self._cos0 * cos_lat * cos_d)))
-        k = 1.0 if c < 1e-9 else c / math.sin(c)
-        north = k * (self._cos0 * sin_lat - self._sin0 * cos_lat * cos_d) * EARTH_RADIUS
-        east = k * cos_lat * math.sin(d_lon) * EARTH_RADIUS
-        return np.array((north, east, self.alt - alt))
-
-
 class StateEstimator:
     """Mahony attitude filter + linear Kalman position filter on HIL_SENSOR / HIL_GPS (see module doc)."""
 
@@ -137,7 +115,7 @@ class StateEstimator:
         self.vehicle = vehicle
         self.settings = settings or EstimatorSettings()
         self.g = vehicle.gravity
-        self.frame = GeodeticFrame(vehicle.home.lat, vehicle.home.lon, vehicle.home.alt)
+        self.frame = LocalFrame(vehicle.home.lat, vehicle.home.lon, vehicle.home.alt)
         field_ned = np.array(vehicle.sensors.mag.earth_field, dtype=float)
         self.mag_heading_ref = math.atan2(field_ned[1], field_ned[0])
         s = self.settings
@@ -247,7 +225,7 @@ class StateEstimator:
         self.P = ikh @ self.P @ ikh.T + K @ R @ K.T
 
     def _gps(self, gps: GpsSample) -> None:
-        p = self.frame.to_ned(gps.lat, gps.lon, gps.alt)
+        p = np.array(self.frame.to_ned(gps.lat, gps.lon, gps.alt))
         z = np.concatenate((p, np.asarray(gps.vel, dtype=float)))
         if not self.position_initialised:
             self.x[0:6] = z

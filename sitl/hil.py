@@ -20,11 +20,11 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from bridge import messages
 from bridge.framing import payload_bytes
+from bridge.geodesy import LocalFrame
 from bridge.link import UdpLink
 from bridge.signing import Signing
 from bridge.vehicle import HomeConfig
 from sitl.dynamics import Quadrotor
-from sitl.geodesy import LocalFrame
 from sitl.sensors import SensorFrame
 
 HIL_COMPONENT_ID = 51  # the simulator's component id on the HIL link
