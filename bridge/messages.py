@@ -19,6 +19,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge.framing import decode_frame, spec_for, unpack_frame
+from bridge.rotations import euler_from_quaternion  # noqa: F401 - also used by importers of messages
 
 G0 = 9.80665  # m/s^2, the g PX4 uses to clamp accelerometer readings
 ACCEL_LIMIT = 16.0 * G0  # m/s^2
@@ -80,19 +81,6 @@ def _int_clip(value: float, lo: int, hi: int) -> int:
     return lo if v < lo else (hi if v > hi else int(v))
 
 
-def euler_from_quaternion(q: Sequence[float]) -> np.ndarray:
-    """ZYX Euler angles (phi roll, theta pitch, psi yaw) in rad of a scalar-first body-to-NED quaternion."""
-    w, x, y, z = (float(c) for c in q)
-    phi = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    s = 2.0 * (w * y - z * x)
-    theta = math.asin(1.0 if s > 1.0 else (-1.0 if s < -1.0 else s))
-    psi = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return np.array((phi, theta, psi))
-
-
-# --------------------------------------------------------------------------------------------------------
-# Typed observations
-# --------------------------------------------------------------------------------------------------------
 @dataclass
 class ImuSample:
     """One HIL_SENSOR reading: accel FRD m/s^2 (specific force), gyro FRD rad/s, mag FRD gauss, baro.

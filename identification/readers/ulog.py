@@ -32,12 +32,12 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.rotations import euler_from_quaternions
 from identification.dataset import Dataset
 from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
-    euler_from_quaternions,
     nominal_step,
     sensor_targets,
 )
