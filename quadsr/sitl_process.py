@@ -76,7 +76,7 @@ class SitlProcess:
                 log.close()
 
     def stop(self, timeout: float = 5.0) -> int | None:
-        """Stop the SITL (SIGINT, then kill after `timeout` s); return its exit code."""
+        """Stop the SITL (SIGTERM, then SIGKILL after `timeout` s); return its exit code."""
         if self.proc is None or self.proc.poll() is not None:
             return None if self.proc is None else self.proc.returncode
         self.proc.terminate()
