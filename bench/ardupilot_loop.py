@@ -105,9 +105,9 @@ def fly(name: str, args, out: Path) -> dict:
 def ceiling(ardupilot: Path, out: Path, wall_s: float = 15.0) -> float:
     """Frames per wall second ArduCopter runs against a stationary responder (a fixed JSON line, no physics,
     no sensors): the most any JSON physics can get from it on this machine now."""
+    from bridge.shutdown import die_with_parent
     from quadsr.ardupilot_process import free_instance
     from sitl.ardupilot_json import sensor_json
-    from sitl.ardupilot_launcher import die_with_parent
 
     n = free_instance()
     folder = out / "ceiling"

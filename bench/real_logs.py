@@ -72,7 +72,7 @@ def baseline_r2(train, hold, u_train: np.ndarray, u_hold: np.ndarray) -> dict[st
 def main() -> int:
     """Run the floors on every log; print figures; PASS when every evaluated floor holds."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--budget", type=float, default=60.0, help="engine budget per target, s (default 60)")
+    ap.add_argument("--budget", type=int, default=60, help="SR generations per target (default 60)")
     ap.add_argument("--logs", default=str(REPO.parent / "shared" / "logs"), help="folder of logs")
     args = ap.parse_args()
     logs = sorted(p for p in Path(args.logs).iterdir() if p.suffix.lower() in (".ulg", ".bin", ".tlog"))
@@ -95,7 +95,7 @@ def main() -> int:
         if len(data) < 50:
             print(f"only {len(data)} airborne rows: no model")
             continue
-        model = QuadrotorModel(budget_s=args.budget, seed=0).fit(data)
+        model = QuadrotorModel(budget=args.budget, seed=0).fit(data)
         wall = time.perf_counter() - start
         train, hold = data.split(0.2)  # the model applies its motor curve itself where u is not measured
         ours = model.scores(hold)

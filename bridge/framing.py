@@ -56,6 +56,7 @@ class MessageSpec:
     values_of: Callable[[Any], tuple] | None  # values in wire order (as unpack gives); None: char fields
     build: Callable[..., Any]  # (unpacked tuple, header, msgbuf, payload, crc, signed, link_id) -> message
     make: Callable[..., Any]  # the constructor's signature, fast: new message from field values
+    fast: bool = False  # build/make fill __dict__ directly (checked equal to pymavlink's constructor)
 
 
 _new = object.__new__
@@ -114,6 +115,7 @@ def _make_spec(cls: type) -> MessageSpec:
     has_char = any(types[name] == "char" for name in cls.ordered_fieldnames)
     ns: dict[str, Any] = {"_pack": cls.unpacker.pack, "_cls": cls, "_new": _new, "_Header": _Header}
     payload_of = values_of = None
+    fast = False
     if not has_char:
         args = []
         for name, alen in zip(cls.ordered_fieldnames, cls.array_lengths, strict=True):
@@ -171,7 +173,8 @@ def _make_spec(cls: type) -> MessageSpec:
             f"    m.__dict__ = {{{fields_from_args}}}\n    return m\n",
             ns,
         )
-        if _fast_objects_match(cls, names, ns["slow_build"], ns["build"], ns["make"]):
+        fast = _fast_objects_match(cls, names, ns["slow_build"], ns["build"], ns["make"])
+        if fast:
             build = ns["build"]
             make = ns["make"]
     return MessageSpec(
@@ -184,6 +187,7 @@ def _make_spec(cls: type) -> MessageSpec:
         values_of=values_of,
         build=build,
         make=make,
+        fast=not has_char and fast,
     )
 
 
@@ -453,3 +457,37 @@ def _split(
             continue
         out.append((spec, frame, header_len, signature_len))
     return out, n
+
+
+def self_check() -> list[str]:
+    """What of this module disagrees with the installed pymavlink (empty: all agree).
+
+    For every common-dialect message: the fast constructors were accepted (no char fields), and a frame
+    packed here, from a message with non-zero fields, is byte-equal to pymavlink's own and decodes back to
+    equal field values. bridge relies on pymavlink internals (class attributes, unpacker, orders): this is
+    the check that a pymavlink version still fits (pyproject.toml pins the range it passed for).
+    """
+    problems = []
+    mav = mavlink.MAVLink(None, srcSystem=7, srcComponent=9)
+    for msg_id, cls in sorted(mavlink.mavlink_map.items()):
+        spec = spec_for_id(msg_id)
+        if spec is None or spec.cls is not cls:
+            problems.append(f"{cls.__name__}: no spec")
+            continue
+        if spec.payload_of is not None and not spec.fast:
+            problems.append(f"{cls.__name__}: fast constructor refused")
+        if spec.payload_of is None:
+            continue
+        values = tuple((i % 5) + 1 for i in range(len(spec.unpack(bytes(spec.size)))))
+        wire = spec.unpack(cls.unpacker.pack(*values))
+        msg = spec.build(wire, _Header(msg_id), bytearray(), b"", 0, False, None)
+        mav.seq = 3
+        theirs = bytes(msg.pack(mav))
+        ours = pack_frame(msg, 3, 7, 9)
+        if ours != theirs:
+            problems.append(f"{cls.__name__}: frame differs from pymavlink's")
+            continue
+        decoded = mavlink.MAVLink(None).decode(bytearray(ours))
+        if [getattr(decoded, n) for n in cls.fieldnames] != [getattr(msg, n) for n in cls.fieldnames]:
+            problems.append(f"{cls.__name__}: decodes to other values")
+    return problems

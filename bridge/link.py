@@ -3,6 +3,7 @@ a received datagram parsed, bad bytes dropped and counted (never raised)."""
 
 from __future__ import annotations
 
+import errno
 import re
 import select
 import socket
@@ -70,6 +71,17 @@ def _as_endpoint(value: Endpoint | str | None) -> Endpoint | None:
     return parse_endpoint(value)
 
 
+def bind_hint(errno_value: int | None) -> str:
+    """What to do when binding a UDP address failed with this errno."""
+    if errno_value == errno.EADDRINUSE:
+        return "another process (an earlier SITL?) uses that port: stop it or pick another (udp:HOST:PORT)"
+    if errno_value == errno.EADDRNOTAVAIL:
+        return "that host is not an address of this machine: use 127.0.0.1 (this machine) or 0.0.0.0 (all)"
+    if errno_value == errno.EACCES:
+        return "ports below 1024 need privileges: pick a port from 1024 to 65535"
+    return "give another address as udp:HOST:PORT"
+
+
 class UdpLink:
     """A MAVLink 2 (common dialect) link over one UDP socket.
 
@@ -108,10 +120,8 @@ class UdpLink:
                 self._sock.bind(("127.0.0.1" if loopback else "0.0.0.0", 0))
         except OSError as exc:
             self._sock.close()
-            raise UserError(
-                f"cannot listen on {local}: {exc.strerror}",
-                hint="is another process (an earlier SITL?) using that port? pick another with udp:HOST:PORT",
-            ) from None
+            where = str(local) if local is not None else "a free local UDP port"
+            raise UserError(f"cannot listen on {where}: {exc.strerror}", hint=bind_hint(exc.errno)) from None
         self.local = Endpoint(*self._sock.getsockname()[:2])
         # The socket stays in blocking mode with no Python timeout: waits go through one poll() and every
         # recvfrom/sendto is a single MSG_DONTWAIT syscall (a socket timeout would add a poll() before each

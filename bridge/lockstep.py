@@ -7,7 +7,6 @@ stamped with that step's time_usec, and waits for the next step.
 
 from __future__ import annotations
 
-import math
 import select
 import time
 from collections.abc import Sequence
@@ -21,6 +20,7 @@ from bridge.messages import (
     ObservationAssembler,
     encode_heartbeat,
     encode_hil_actuator_controls,
+    sanitize_throttles,
 )
 from bridge.signing import Signing
 from bridge.stats import LinkStats
@@ -44,13 +44,6 @@ def _as_signing(signing: Signing | str | Path | bytes | None) -> Signing | None:
     if isinstance(signing, (bytes, bytearray)):
         return Signing(bytes(signing))
     return Signing.from_file(signing)
-
-
-def _clean_throttle(value: float) -> float:
-    v = float(value)
-    if not math.isfinite(v) or v < 0.0:  # NaN/inf -> motor off; SITL would clamp anyway
-        return 1.0 if v == math.inf else 0.0
-    return 1.0 if v > 1.0 else v
 
 
 class LockstepClient:
@@ -120,7 +113,7 @@ class LockstepClient:
             raise RuntimeError("LockstepClient.step() before connect()")
         if len(throttles) != 4:
             raise ValueError(f"step() takes 4 motor throttles, got {len(throttles)}")
-        clean = [_clean_throttle(v) for v in throttles]
+        clean = list(sanitize_throttles(throttles)[0])  # the SITL's rule: NaN/inf -> 0, clipped to [0, 1]
         cmd = encode_hil_actuator_controls(current.time_usec, clean)
         self._command = (current.time_usec, cmd)
         self.link.send([cmd])

@@ -19,6 +19,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge.framing import decode_frame, spec_for, unpack_frame
+from bridge.rotations import euler_from_quaternion  # noqa: F401 - also used by importers of messages
 
 G0 = 9.80665  # m/s^2, the g PX4 uses to clamp accelerometer readings
 ACCEL_LIMIT = 16.0 * G0  # m/s^2
@@ -80,28 +81,6 @@ def _int_clip(value: float, lo: int, hi: int) -> int:
     return lo if v < lo else (hi if v > hi else int(v))
 
 
-def euler_from_quaternion(q: Sequence[float]) -> np.ndarray:
-    """ZYX Euler angles (phi roll, theta pitch, psi yaw) in rad of a scalar-first body-to-NED quaternion."""
-    w, x, y, z = (float(c) for c in q)
-    phi = math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    s = 2.0 * (w * y - z * x)
-    theta = math.asin(1.0 if s > 1.0 else (-1.0 if s < -1.0 else s))
-    psi = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return np.array((phi, theta, psi))
-
-
-def quaternion_from_euler(phi: float, theta: float, psi: float) -> tuple[float, float, float, float]:
-    """Scalar-first body-to-NED quaternion of ZYX Euler angles (roll phi, pitch theta, yaw psi) in rad."""
-    cr, sr = math.cos(0.5 * phi), math.sin(0.5 * phi)
-    cp, sp = math.cos(0.5 * theta), math.sin(0.5 * theta)
-    cy, sy = math.cos(0.5 * psi), math.sin(0.5 * psi)
-    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy)
-
-
-# --------------------------------------------------------------------------------------------------------
-# Typed observations
-# --------------------------------------------------------------------------------------------------------
 @dataclass
 class ImuSample:
     """One HIL_SENSOR reading: accel FRD m/s^2 (specific force), gyro FRD rad/s, mag FRD gauss, baro.
@@ -331,6 +310,31 @@ def encode_hil_gps(*args: object) -> HilGps:
         0,
         0,
     )
+
+
+def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int, int]:
+    """Motor throttles from controls[0..3]: (throttles in [0, 1], count non-finite -> 0, count clamped).
+
+    The one rule for both seats of the HIL link: NaN and +-inf are 0 (motor off), the rest clipped to [0, 1].
+    """
+    nonfinite = 0
+    clamped = 0
+    out = []
+    for value in controls[:4]:
+        v = float(value)
+        if not math.isfinite(v):
+            nonfinite += 1
+            v = 0.0
+        elif v < 0.0:
+            clamped += 1
+            v = 0.0
+        elif v > 1.0:
+            clamped += 1
+            v = 1.0
+        out.append(v)
+    while len(out) < 4:
+        out.append(0.0)
+    return (out[0], out[1], out[2], out[3]), nonfinite, clamped
 
 
 def encode_hil_actuator_controls(*args: object, lockstep: bool = True) -> HilActuatorControls:

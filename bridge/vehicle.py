@@ -351,6 +351,10 @@ def resolve_vehicle_path(path_or_name: str | Path) -> Path:
     path = Path(text)
     if path.is_file():
         return path
+    if path.is_dir():
+        raise UserError(f"vehicle file {text}: is a directory, not a file",
+                        hint="give the vehicle YAML file inside it, e.g. --vehicle "
+                        f"{path / 'my-quad.yaml'}, or a bundled name ({', '.join(list_vehicles())})")
     looks_like_name = "/" not in text and "\\" not in text and not text.endswith((".yaml", ".yml"))
     if looks_like_name:
         bundled = vehicles_dir() / f"{text}.yaml"

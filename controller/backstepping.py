@@ -107,7 +107,7 @@ class ModelErrorObserver:
                 pass
         if a is None and not any(d):  # off, just off the ground, or nothing to update an estimate of 0 with
             return [0.0] * 6, [0.0, 0.0, 0.0]
-        # rotation(phi, theta, psi) written out: this runs every control step
+        # bridge.rotations.rotation_from_euler written out: this runs every control step
         sf, cf = math.sin(xi[6]), math.cos(xi[6])
         st, ct = math.sin(xi[7]), math.cos(xi[7])
         sp, cp = math.sin(xi[8]), math.cos(xi[8])
@@ -148,16 +148,6 @@ class ModelErrorObserver:
                  r20 * d0 + r21 * d1 + r22 * d2, d[3], d[4], d[5]],
                 [r00 * c0 + r01 * c1 + r02 * c2, r10 * c0 + r11 * c1 + r12 * c2,
                  r20 * c0 + r21 * c1 + r22 * c2])
-
-
-def rotation(phi: float, theta: float, psi: float) -> list[list[float]]:
-    """R = Rz(psi) Ry(theta) Rx(phi) (rows), body FRD to earth NED, from ZYX Euler angles [rad]."""
-    sf, cf = math.sin(phi), math.cos(phi)
-    st, ct = math.sin(theta), math.cos(theta)
-    sp, cp = math.sin(psi), math.cos(psi)
-    return [[ct * cp, sf * st * cp - cf * sp, cf * st * cp + sf * sp],
-            [ct * sp, sf * st * sp + cf * cp, cf * st * sp - sf * cp],
-            [-st, sf * ct, cf * ct]]
 
 
 def _wrap(angle: float) -> float:

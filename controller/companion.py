@@ -169,7 +169,8 @@ class Companion:
                 from tqdm import tqdm
 
                 progress = tqdm(total=n_steps, unit="step", desc=f"{self.controller.name} "
-                                f"{getattr(self.trajectory, 'name', '')}", file=sys.stderr, mininterval=0.5)
+                                f"{getattr(self.trajectory, 'name', '')}", file=sys.stderr, mininterval=0.5,
+                                disable=None)  # None: no bar when stderr is not a terminal (a pipe, a log)
             for k in range(n_steps):
                 start = time.perf_counter()
                 t = obs.t - t0

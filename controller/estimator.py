@@ -29,10 +29,15 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
-from bridge.messages import GpsSample, ImuSample, euler_from_quaternion
+from bridge.geodesy import LocalFrame
+from bridge.messages import GpsSample, ImuSample
+from bridge.rotations import (
+    euler_from_quaternion,
+    quaternion_from_euler,
+    rotation_from_euler,
+    rotation_from_quaternion,
+)
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
-
-EARTH_RADIUS = 6371000.0  # m, PX4's map projection sphere (as sitl.geodesy)
 
 
 @dataclass(frozen=True)
@@ -90,44 +95,8 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw))
 
 
-def _rotation(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array(((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-                     (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-                     (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))))
-
-
-def _q_from_euler(phi: float, theta: float, psi: float) -> np.ndarray:
-    cr, sr = math.cos(0.5 * phi), math.sin(0.5 * phi)
-    cp, sp = math.cos(0.5 * theta), math.sin(0.5 * theta)
-    cy, sy = math.cos(0.5 * psi), math.sin(0.5 * psi)
-    return np.array((cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                     cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy))
-
-
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array((a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]))
-
-
-class GeodeticFrame:
-    """WGS84 (lat, lon deg; alt m AMSL) -> NED m about home: PX4's azimuthal equidistant projection."""
-
-    def __init__(self, lat: float, lon: float, alt: float):
-        self.alt = alt
-        self._lon0 = math.radians(lon)
-        self._sin0 = math.sin(math.radians(lat))
-        self._cos0 = math.cos(math.radians(lat))
-
-    def to_ned(self, lat: float, lon: float, alt: float) -> np.ndarray:
-        """NED position [m] of a geodetic point."""
-        la = math.radians(lat)
-        d_lon = math.radians(lon) - self._lon0
-        sin_lat, cos_lat, cos_d = math.sin(la), math.cos(la), math.cos(d_lon)
-        c = math.acos(max(-1.0, min(1.0, self._sin0 * sin_lat + self._cos0 * cos_lat * cos_d)))
-        k = 1.0 if c < 1e-9 else c / math.sin(c)
-        north = k * (self._cos0 * sin_lat - self._sin0 * cos_lat * cos_d) * EARTH_RADIUS
-        east = k * cos_lat * math.sin(d_lon) * EARTH_RADIUS
-        return np.array((north, east, self.alt - alt))
 
 
 class StateEstimator:
@@ -137,7 +106,7 @@ class StateEstimator:
         self.vehicle = vehicle
         self.settings = settings or EstimatorSettings()
         self.g = vehicle.gravity
-        self.frame = GeodeticFrame(vehicle.home.lat, vehicle.home.lon, vehicle.home.alt)
+        self.frame = LocalFrame(vehicle.home.lat, vehicle.home.lon, vehicle.home.alt)
         field_ned = np.array(vehicle.sensors.mag.earth_field, dtype=float)
         self.mag_heading_ref = math.atan2(field_ned[1], field_ned[0])
         s = self.settings
@@ -171,15 +140,15 @@ class StateEstimator:
         theta = math.atan2(f[0], math.hypot(f[1], f[2]))
         psi = 0.0
         if imu.mag is not None:
-            tilt = _rotation(_q_from_euler(phi, theta, 0.0))
+            tilt = np.array(rotation_from_euler(phi, theta, 0.0)).reshape(3, 3)
             m = tilt @ np.asarray(imu.mag, dtype=float)
             psi = self.mag_heading_ref - math.atan2(m[1], m[0])
-        return _q_from_euler(phi, theta, psi)
+        return np.array(quaternion_from_euler(phi, theta, psi))
 
     def _attitude_step(self, imu: ImuSample, dt: float) -> None:
         s = self.settings
         q = self.q
-        R = _rotation(q)
+        R = np.array(rotation_from_quaternion(*q)).reshape(3, 3)
         f = np.asarray(imu.accel, dtype=float)
         correction = np.zeros(3)
         nf = math.sqrt(float(f @ f))
@@ -217,7 +186,7 @@ class StateEstimator:
     # --- position and velocity -----------------------------------------------------------------------------
     def _predict(self, imu: ImuSample, dt: float) -> None:
         s = self.settings
-        R = _rotation(self.q)
+        R = np.array(rotation_from_quaternion(*self.q)).reshape(3, 3)
         u = R @ np.asarray(imu.accel, dtype=float) + np.array((0.0, 0.0, self.g))
         x = self.x
         a = u - x[6:9]
@@ -247,7 +216,7 @@ class StateEstimator:
         self.P = ikh @ self.P @ ikh.T + K @ R @ K.T
 
     def _gps(self, gps: GpsSample) -> None:
-        p = self.frame.to_ned(gps.lat, gps.lon, gps.alt)
+        p = np.array(self.frame.to_ned(gps.lat, gps.lon, gps.alt))
         z = np.concatenate((p, np.asarray(gps.vel, dtype=float)))
         if not self.position_initialised:
             self.x[0:6] = z

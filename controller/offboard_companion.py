@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bridge.messages import euler_from_quaternion, mavlink, quaternion_from_euler
+from bridge.messages import mavlink
 from bridge.offboard import PX4, OffboardLink
 from bridge.px4_thrust import fit_thrust_model, normalised_thrust
+from bridge.rotations import euler_from_quaternion, quaternion_from_euler
 from bridge.tlog import TlogWriter, read_tlog
 from bridge.vehicle import VehicleConfig
 from controller.companion import CRASH_TILT, CSV_COLUMNS, Companion, FlightResult, FlightSettings, StepLog

@@ -1,4 +1,6 @@
-"""The known kinematics: ZYX rotation matrix and Euler-angle rates from body rates (not learned).
+"""The known kinematics: symbolic ZYX rotation, Euler-angle rates from body rates (not learned).
+
+The numeric rotation matrix is bridge.rotations.rotation_matrix.
 
 R = Rz(psi) Ry(theta) Rx(phi) maps body FRD to earth NED. The Euler rates are the paper's transform
 (phi', theta', psi') = W(phi, theta) (wx, wy, wz), singular at theta = +-pi/2.
@@ -22,27 +24,6 @@ def rotation_matrix_sym(phi: sympy.Expr, theta: sympy.Expr, psi: sympy.Expr) -> 
             [-st, sf * ct, cf * ct],
         ]
     )
-
-
-def rotation_matrix(
-    phi: np.ndarray | float, theta: np.ndarray | float, psi: np.ndarray | float
-) -> np.ndarray:
-    """Body FRD -> earth NED rotation, numeric: (3,3) for scalars, (N,3,3) for arrays of angles (rad)."""
-    phi, theta, psi = np.broadcast_arrays(
-        np.asarray(phi, float), np.asarray(theta, float), np.asarray(psi, float)
-    )
-    cf, sf, ct, st, cp, sp = np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta), np.cos(psi), np.sin(psi)
-    r = np.empty(phi.shape + (3, 3))
-    r[..., 0, 0] = ct * cp
-    r[..., 0, 1] = sf * st * cp - cf * sp
-    r[..., 0, 2] = cf * st * cp + sf * sp
-    r[..., 1, 0] = ct * sp
-    r[..., 1, 1] = sf * st * sp + cf * cp
-    r[..., 1, 2] = cf * st * sp - sf * cp
-    r[..., 2, 0] = -st
-    r[..., 2, 1] = sf * ct
-    r[..., 2, 2] = cf * ct
-    return r
 
 
 def euler_rate_matrix_sym(phi: sympy.Expr, theta: sympy.Expr) -> sympy.Matrix:

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.shutdown import die_with_parent
 from identification.engine import Candidate, Progress, PysrSettings, make_candidate
 from identification.library import input_matrix
 from identification.metrics import LOSSES
@@ -56,6 +57,7 @@ def probe_pysr(timeout_s: float = 60.0) -> str | None:
                 text=True,
                 timeout=timeout_s,
                 stdin=subprocess.DEVNULL,
+                preexec_fn=die_with_parent,
             )
         except subprocess.TimeoutExpired:
             reason = f"importing pysr did not finish within {timeout_s:g} s (a Julia download hanging?)"

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import savgol_coeffs
 
+from bridge.rotations import rotation_matrix
+
 STANDARD_GRAVITY = 9.80665  # m/s^2, what PX4 and ArduPilot use
 
 
@@ -94,35 +96,6 @@ class SensorTargets:
 
 # --------------------------------------------------------------------------------------------------------
 # Attitude
-
-
-def euler_from_quaternions(q: np.ndarray) -> np.ndarray:
-    """ZYX Euler angles (N,3) rad (phi, theta, psi) of scalar-first body-to-NED quaternions (N,4)."""
-    q = np.asarray(q, dtype=float)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    phi = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
-    theta = np.arcsin(np.clip(2.0 * (w * y - z * x), -1.0, 1.0))
-    psi = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-    return np.stack((phi, theta, psi), axis=1)
-
-
-def rotation_matrices(euler: np.ndarray) -> np.ndarray:
-    """Body FRD -> NED rotations (N,3,3) R = Rz(psi) Ry(theta) Rx(phi) of ZYX Euler angles (N,3) rad."""
-    e = np.asarray(euler, dtype=float)
-    cf, sf = np.cos(e[:, 0]), np.sin(e[:, 0])
-    ct, st = np.cos(e[:, 1]), np.sin(e[:, 1])
-    cp, sp = np.cos(e[:, 2]), np.sin(e[:, 2])
-    r = np.empty((len(e), 3, 3))
-    r[:, 0, 0] = ct * cp
-    r[:, 0, 1] = sf * st * cp - cf * sp
-    r[:, 0, 2] = cf * st * cp + sf * sp
-    r[:, 1, 0] = ct * sp
-    r[:, 1, 1] = sf * st * sp + cf * cp
-    r[:, 1, 2] = cf * st * sp - sf * cp
-    r[:, 2, 0] = -st
-    r[:, 2, 1] = sf * ct
-    r[:, 2, 2] = cf * ct
-    return r
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -251,7 +224,7 @@ def truth_targets(
 
 def specific_force_to_ned(accel_frd: np.ndarray, euler: np.ndarray, gravity: float) -> np.ndarray:
     """NED acceleration (N,3) m/s^2 = R(euler) f + (0, 0, g) of specific force f FRD (N,3) m/s^2."""
-    r = rotation_matrices(euler)
+    r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
     a = np.einsum("nij,nj->ni", r, np.asarray(accel_frd, dtype=float))
     a[:, 2] += gravity
     return a

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import signal
@@ -10,7 +11,7 @@ import threading
 import time
 from pathlib import Path
 
-from quadsr.parent_death import die_with_parent
+from bridge.shutdown import die_with_parent
 
 
 class OutputProcess:
@@ -25,7 +26,7 @@ class OutputProcess:
         self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                      stderr=subprocess.STDOUT, cwd=cwd,
                                      env=env if env is not None else {**os.environ, "PYTHONUNBUFFERED": "1"},
-                                     preexec_fn=die_with_parent)
+                                     preexec_fn=functools.partial(die_with_parent, signal.SIGKILL))
         self._reader = threading.Thread(target=self._pump, daemon=True)
         self._reader.start()
 

@@ -44,20 +44,29 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point: parse, dispatch, and turn user mistakes into clear messages."""
     from bridge.errors import UserError
+    from bridge.shutdown import StopSignals
 
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv == ["--version"]:  # answered before any subcommand's module (numpy, sympy, ...) is imported
+        print(f"quadsr {__version__}")
+        return 0
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # SIGTERM acts as Ctrl-C (KeyboardInterrupt: each job writes what it has), and a repeated signal while
+    # the job shuts down is absorbed (bridge.shutdown.StopSignals).
+    signals = StopSignals(raise_interrupt=True)
     try:
-        return int(args.func(args) or 0)
+        with signals:
+            return int(args.func(args) or 0)
     except UserError as exc:
         print(f"quadsr {args.command}: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print(f"quadsr {args.command}: interrupted", file=sys.stderr)
-        return 130
+        print(f"quadsr {args.command}: interrupted ({signals.name})", file=sys.stderr)
+        return signals.exit_code
     except BrokenPipeError:  # output piped into `head` and the like: stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from quadsr.pipeline import TrackingRow
+    from quadsr.paper_run import TrackingRow
 
 
 def _steps(row: TrackingRow) -> dict[str, np.ndarray] | None:
@@ -25,7 +25,7 @@ def _steps(row: TrackingRow) -> dict[str, np.ndarray] | None:
 
 
 def _line_style(label: str) -> dict[str, Any]:
-    from quadsr.pipeline import LEARNED_LABEL
+    from quadsr.paper_run import LEARNED_LABEL
 
     # the learned-model line is drawn wide and light so the true-model line on top of it stays visible
     return {"lw": 3.0, "alpha": 0.45} if label == LEARNED_LABEL else {"lw": 1.1}

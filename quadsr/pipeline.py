@@ -14,46 +14,33 @@ bench/track_paper.py.
 from __future__ import annotations
 
 import datetime as _dt
-import signal
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from bridge.errors import UserError
-from bridge.vehicle import VehicleConfig, load_vehicle
+from bridge.shutdown import StopSignals
+from bridge.vehicle import load_vehicle
+from quadsr.paper_run import (  # noqa: F401 - the run's records, also importable from here
+    CASES,
+    CONTROLLER_KEYS,
+    LEARNED_LABEL,
+    TRUE_LABEL,
+    PaperRun,
+    PaperSettings,
+    StageRecord,
+    TrackingRow,
+)
 from quadsr.sitl_process import SitlProcess
 
 # SITL flags. A long lockstep wait bound: a busy machine must not send the SITL into failsafe mid-flight.
 PATIENT_SITL: tuple[str, ...] = ("--lockstep-timeout", "30")
 OPEN_LOOP_SITL: tuple[str, ...] = ("--ground", "none", "--initial-position", "0,0,-200", *PATIENT_SITL)
 GROUND_SITL: tuple[str, ...] = PATIENT_SITL
-CASES: tuple[str, ...] = ("case1", "case2")
-CONTROLLER_KEYS: tuple[str, ...] = ("learned", "true", "pid", "se3")
-LEARNED_LABEL = "backstepping (learned)"
-TRUE_LABEL = "backstepping (true model)"
-
-
-@dataclass(frozen=True)
-class PaperSettings:
-    """A run's budgets: flight lengths [s, simulated], SR generations per target, link timeout [s]."""
-
-    name: str  # default | quick
-    train_duration: float  # s, the paper-train flight (its four speed groups share it evenly)
-    budget: int  # genetic-programming generations per target (an iteration budget, not seconds)
-    track_duration: float  # s, each tracking flight
-    link_timeout: float = 10.0  # s a client waits for the SITL's next step before it gives up
-
-    def describe(self) -> str:
-        """One line: the budgets."""
-        per_group = int(round(self.train_duration / 4 / 0.004))
-        return (f"{self.name} budgets: paper-train {self.train_duration:g} s ({per_group} samples per "
-                f"speed group), SR budget {self.budget} generations per target, tracking flights "
-                f"{self.track_duration:g} s")
-
 
 DEFAULT_SETTINGS = PaperSettings("default", train_duration=32.0, budget=60, track_duration=20.0)
 QUICK_SETTINGS = PaperSettings("quick", train_duration=16.0, budget=10, track_duration=12.0)
@@ -133,23 +120,6 @@ def controller_specs(learned: Path | None, true_model: Path,
     return specs
 
 
-@dataclass
-class TrackingRow:
-    """One tracking flight: controller, case, state source, its metrics (None: no data) and outcome."""
-
-    label: str
-    case: str
-    state: str  # truth | sensors
-    metrics: Any  # controller.metrics.FlightMetrics | None
-    message: str  # why it stopped early or was not flown ('' when it ran to the end)
-    flight_dir: Path | None = None
-    completed: bool = False
-    crashed: bool = False
-    wall_s: float = 0.0
-    link_lost: bool = False  # the SITL stopped answering: a failure of the run, not of the controller
-    law: str = ""  # how the controller was built (its describe(): the derived law), '' if it says nothing
-
-
 def flight_dir_name(label: str, case: str, state: str) -> str:
     """The folder name of one tracking flight, e.g. backstepping_learned_case1_truth."""
     return f"{label.replace(' ', '_').replace('(', '').replace(')', '')}_{case}_{state}"
@@ -198,17 +168,6 @@ def fly_tracking(spec: ControllerSpec, case: str, *, duration: float, out: Path,
 # The run
 
 
-@dataclass
-class StageRecord:
-    """One stage of the run: its name, what it does, its status and wall time [s]."""
-
-    name: str
-    title: str
-    status: str = "not run"  # not run | running | done | failed | interrupted
-    wall_s: float | None = None
-    note: str = ""
-
-
 class StageFailed(Exception):
     """A stage raised: names the stage and says why."""
 
@@ -230,44 +189,6 @@ class StageInterrupted(Exception):
     def exit_code(self) -> int:
         """130 for Ctrl-C (SIGINT), 143 for SIGTERM (128 + the signal number)."""
         return 143 if self.signal_name == "SIGTERM" else 130
-
-
-@dataclass
-class PaperRun:
-    """Everything one run did and produced, as far as it got (what report.md is written from)."""
-
-    out: Path
-    settings: PaperSettings
-    seed: int
-    vehicle: VehicleConfig
-    command: str
-    started_utc: str
-    stages: list[StageRecord]
-    progress: bool = False
-    files: dict[str, Path] = field(default_factory=dict)  # key -> written file
-    flights: dict[str, Any] = field(default_factory=dict)  # profile -> identification FlightSummary
-    rows: dict[str, int] = field(default_factory=dict)  # dataset rows: train, validate
-    model: Any = None  # identification.model_file.Model (learned)
-    truth: Any = None  # the true Model
-    validation: Any = None  # identification.validate.ValidationReport
-    tracking: list[TrackingRow] = field(default_factory=list)
-    failure: str | None = None  # "stage 'x' failed: ..." or "interrupted ..."
-    finished: bool = False
-    elapsed_s: float = 0.0  # s wall since the pipeline started (stages, report writing, SITL start-ups)
-
-    @property
-    def vehicle_ref(self) -> str:
-        """The vehicle file's path (or its name) as the SITL and the clients take it."""
-        return str(self.vehicle.source_path or self.vehicle.name)
-
-    @property
-    def total_wall_s(self) -> float:
-        """Sum of the stages' wall times [s]."""
-        return sum(s.wall_s or 0.0 for s in self.stages)
-
-    def stage(self, name: str) -> StageRecord:
-        """The record of stage `name`."""
-        return next(s for s in self.stages if s.name == name)
 
 
 STAGES: tuple[tuple[str, str], ...] = (
@@ -395,10 +316,6 @@ class PaperPipeline:
         self.run.elapsed_s = time.perf_counter() - self._t0
         self.run.files["report"] = write_report(self.run)
 
-    def _on_sigterm(self, signum: int, frame: Any) -> None:
-        self._signal_name = "SIGTERM"
-        raise KeyboardInterrupt
-
     def execute(self) -> PaperRun:
         """Run every stage; raises StageFailed or StageInterrupted (after writing the partial report)."""
         r = self.run
@@ -407,10 +324,8 @@ class PaperPipeline:
             "identify": self._identify, "validate": self._validate, "track": self._track,
             "figures": self._figures,
         }
-        try:
-            previous = signal.signal(signal.SIGTERM, self._on_sigterm)
-        except ValueError:  # not the main thread: SIGTERM keeps its default
-            previous = None
+        # SIGTERM as SIGINT; a repeated signal while the report is written and children stop is absorbed.
+        signals = StopSignals(raise_interrupt=True).__enter__()
         try:
             self._write_report()
             n = len(r.stages)
@@ -422,6 +337,8 @@ class PaperPipeline:
                 try:
                     record.note = steps[record.name]()
                 except KeyboardInterrupt:
+                    if signals.requested:
+                        self._signal_name = signals.name
                     record.status, record.wall_s = "interrupted", time.perf_counter() - start
                     r.failure = f"interrupted ({self._signal_name}) during stage '{record.name}'"
                     self.children.stop_all()
@@ -444,8 +361,7 @@ class PaperPipeline:
             return r
         finally:
             self.children.stop_all()
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            signals.__exit__(None, None, None)
 
 
 def _failure_text(exc: BaseException, deaths: Sequence[str]) -> str:

@@ -11,6 +11,7 @@ from pathlib import Path
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the pipeline subcommands to the quadsr parser."""
     p = sub.add_parser("hover-check", help="start a SITL, take off over MAVLink, and check the hover",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter,
                        description="Starts `quadsr sitl` as a child process on free ports (lockstep), takes "
                                    "off to --altitude and holds it, and checks the hold: RMS altitude error "
                                    "< 2 cm, tilt < 0.01 rad, final speed < 2 cm/s. Exit 0 when it passes.")

@@ -20,7 +20,7 @@ from identification.validate import PAPER_TABLE, comparison_markdown, table_mark
 from quadsr.equations import SIGN_NOTES, kinematics_match_paper
 
 if TYPE_CHECKING:
-    from quadsr.pipeline import PaperRun, TrackingRow
+    from quadsr.paper_run import PaperRun, TrackingRow
 
 
 def expressions_fingerprint(model: Model) -> str:
@@ -136,7 +136,7 @@ def versions() -> dict[str, str]:
 
 def checks(run: PaperRun) -> list[tuple[str, bool | None]]:
     """The issue's floors on this run: (what, passed; None when the stage did not run)."""
-    from quadsr.pipeline import CASES, LEARNED_LABEL, TRUE_LABEL
+    from quadsr.paper_run import CASES, LEARNED_LABEL, TRUE_LABEL
 
     out: list[tuple[str, bool | None]] = []
     v = run.validation

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from bridge.errors import UserError
-from quadsr.parent_death import die_with_parent
+from bridge.shutdown import die_with_parent
 
 
 def free_udp_port(host: str = "127.0.0.1") -> int:
@@ -76,7 +76,7 @@ class SitlProcess:
                 log.close()
 
     def stop(self, timeout: float = 5.0) -> int | None:
-        """Stop the SITL (SIGINT, then kill after `timeout` s); return its exit code."""
+        """Stop the SITL (SIGTERM, then SIGKILL after `timeout` s); return its exit code."""
         if self.proc is None or self.proc.poll() is not None:
             return None if self.proc is None else self.proc.returncode
         self.proc.terminate()

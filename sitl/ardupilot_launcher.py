@@ -8,7 +8,6 @@ exits on its own, the launcher says which, how, and at what simulated time, stop
 
 from __future__ import annotations
 
-import ctypes
 import math
 import os
 import re
@@ -23,24 +22,15 @@ from pathlib import Path
 from typing import TextIO
 
 from bridge.errors import UserError
+from bridge.shutdown import die_with_parent
 from bridge.vehicle import VehicleConfig, load_vehicle
 from sitl.ardupilot_params import write_parm
 from sitl.ardupilot_server import LISTENING
 
-PR_SET_PDEATHSIG = 1
 MAVLINK_TCP_BASE = 5760  # SERIAL0; SERIAL1, SERIAL2 on +2, +3
 JSON_UDP_BASE = 9002
 SITL_T = re.compile(r"quadsr sitl: t=([\d.]+)s")
 POLL_S = 0.1  # wall s between checks of the children
-
-
-def die_with_parent(signum: int) -> None:
-    """In a child before exec: ask the kernel to send signum when the parent process dies (Linux)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(PR_SET_PDEATHSIG, signum, 0, 0, 0)
-    except (OSError, AttributeError):  # not Linux: the process group and the launcher's own stop remain
-        pass
 
 
 @dataclass

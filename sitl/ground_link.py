@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge.errors import UserError
+from bridge.signing import Signing
 from sitl.hil import Framer, int16_of, int32_of, kind, lat_e7, lon_e7, part_of
 
 SYSTEM_ID = 1
@@ -64,6 +65,17 @@ _ATT, _ATQ, _LPN, _GPI = map(kind, (
 ))
 
 
+MIN_INTERVAL_US = 4_000  # fastest stream a ground tool may ask for: one exchange step
+MAX_INTERVAL_US = 3_600_000_000  # slowest: once an hour
+
+
+def message_id_of(param: float) -> int:
+    """A command parameter as a MAVLink message id, or -1 if it is none (NaN, inf, fraction, out of range)."""
+    if not math.isfinite(param) or param != int(param) or not 0 <= param < 1 << 24:
+        return -1
+    return int(param)
+
+
 @dataclass
 class GroundState:
     """What the ground link reports about the vehicle at one instant."""
@@ -95,7 +107,7 @@ class Home:
 class _Channel:
     """One UDP socket sending first to a fixed ground-tool address and parsing what comes back."""
 
-    def __init__(self, host: str, port: int):
+    def __init__(self, host: str, port: int, signing: Signing | None = None):
         try:
             address = socket.gethostbyname(host)
         except OSError:
@@ -107,8 +119,10 @@ class _Channel:
         self.sock.setblocking(False)
         self.parser = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
         self.parser.robust_parsing = True
+        self.signing = signing
         self.received = 0
         self.bad = 0
+        self.refused = 0  # unsigned, wrongly signed or replayed frames (signing on)
 
     def send(self, data: bytes) -> bool:
         """Send one datagram; a missing listener is not an error for a UDP ground link."""
@@ -128,16 +142,22 @@ class _Channel:
                 return out
             except OSError:  # e.g. ECONNREFUSED reported from an earlier send
                 continue
+            # A UDP datagram holds whole frames: a partial frame left by the last one (a hostile or truncated
+            # datagram) must not swallow the start of this one.
+            self.parser.buf = bytearray()
+            self.parser.buf_index = 0
             try:
                 msgs = self.parser.parse_buffer(data) or []
             except Exception:  # a malformed frame from a ground tool must never stop the SITL
                 self.bad += 1
-                self.parser.buf = bytearray()
-                self.parser.buf_index = 0
                 continue
             for msg in msgs:
                 if msg.get_type() == "BAD_DATA":
                     self.bad += 1
+                elif self.signing is not None and self.signing.verify(
+                    bytes(msg.get_msgbuf()), msg.get_srcSystem(), msg.get_srcComponent()
+                ):
+                    self.refused += 1
                 else:
                     self.received += 1
                     out.append(msg)
@@ -150,17 +170,19 @@ class _Channel:
 class GroundLink:
     """Streams PX4-like telemetry to GCS/offboard endpoints and answers their commands."""
 
-    def __init__(self, endpoints: list[tuple[str, int]], home: Home):
-        self.channels = [_Channel(host, port) for host, port in endpoints]
+    def __init__(self, endpoints: list[tuple[str, int]], home: Home, signing: Signing | None = None):
+        """signing: sign every frame sent, accept only validly signed, fresh frames (one key, all tools)."""
+        self.channels = [_Channel(host, port, signing) for host, port in endpoints]
         self.home = home
         self.seq = 0
-        self.framer = Framer(SYSTEM_ID, COMPONENT_ID, self)
+        self.framer = Framer(SYSTEM_ID, COMPONENT_ID, self, signing)
         self.intervals_us = dict(DEFAULT_INTERVALS_US)
         self.next_due_us: dict[int, int] = {}
         self.requested: list[int] = []  # one-shot messages to send at the next service
         self.acks: list = []  # answers and queued messages, sent at the next service
         self.sent = 0
         self.commands = 0
+        self.rejected = 0  # messages that failed a check while being answered (dropped)
         self.last_clock_us: int | None = None
 
     def queue(self, msg) -> None:
@@ -214,6 +236,13 @@ class GroundLink:
                 self.sent += len(frames)
 
     def _handle(self, msg) -> None:
+        """Answer one message; any field it uses is checked first (a hostile frame never stops the SITL)."""
+        try:
+            self._answer(msg)
+        except Exception:  # noqa: BLE001 - a message no check foresaw is dropped and counted, never fatal
+            self.rejected += 1
+
+    def _answer(self, msg) -> None:
         kind = msg.get_type()
         if kind in ("COMMAND_LONG", "COMMAND_INT"):
             if msg.target_system not in (0, SYSTEM_ID) or msg.target_component not in (0, COMPONENT_ID):
@@ -235,19 +264,19 @@ class GroundLink:
     def _command(self, msg) -> int:
         command = msg.command
         if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            msg_id, interval = int(msg.param1), msg.param2
+            msg_id, interval = message_id_of(msg.param1), msg.param2
             if msg_id not in STREAMABLE or not math.isfinite(interval):
                 return mavlink.MAV_RESULT_UNSUPPORTED
             if interval == 0:
                 self.intervals_us[msg_id] = DEFAULT_INTERVALS_US[msg_id]
             elif interval < 0:
                 self.intervals_us[msg_id] = 0
-            else:
-                self.intervals_us[msg_id] = int(interval)
+            else:  # us; no faster than one exchange step, no slower than once an hour
+                self.intervals_us[msg_id] = int(min(max(interval, MIN_INTERVAL_US), MAX_INTERVAL_US))
             self.next_due_us.pop(msg_id, None)
             return mavlink.MAV_RESULT_ACCEPTED
         if command == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            msg_id = int(msg.param1) if math.isfinite(msg.param1) else -1
+            msg_id = message_id_of(msg.param1)
             if msg_id not in DEFAULT_INTERVALS_US:
                 return mavlink.MAV_RESULT_UNSUPPORTED
             self.requested.append(msg_id)

@@ -21,11 +21,11 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from bridge import messages
 from bridge.framing import payload_bytes
+from bridge.geodesy import LocalFrame
 from bridge.link import UdpLink
 from bridge.signing import Signing
 from bridge.vehicle import HomeConfig
 from sitl.dynamics import Quadrotor
-from sitl.geodesy import LocalFrame
 from sitl.sensors import SensorFrame
 
 HIL_COMPONENT_ID = 51  # the simulator's component id on the HIL link
@@ -239,28 +239,6 @@ def reference_messages(quad: Quadrotor, s: SensorFrame, home: HomeConfig) -> lis
 def wind_cov(time_usec: int, wind: tuple[float, float, float], variance: tuple[float, float], alt: float):
     """A WIND_COV message: true wind (NED m/s), turbulence variance (horizontal, vertical) (m/s)^2, alt m."""
     return mavlink.MAVLink_wind_cov_message(time_usec, *wind, variance[0], variance[1], alt, 0.0, 0.0)
-
-
-def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int, int]:
-    """Motor throttles from controls[0..3]: (throttles in [0, 1], count non-finite -> 0, count clamped)."""
-    nonfinite = 0
-    clamped = 0
-    out = []
-    for value in controls[:4]:
-        v = float(value)
-        if not math.isfinite(v):
-            nonfinite += 1
-            v = 0.0
-        elif v < 0.0:
-            clamped += 1
-            v = 0.0
-        elif v > 1.0:
-            clamped += 1
-            v = 1.0
-        out.append(v)
-    while len(out) < 4:
-        out.append(0.0)
-    return (out[0], out[1], out[2], out[3]), nonfinite, clamped
 
 
 def statustext(severity: int, text: str):

@@ -19,9 +19,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from bridge.geodesy import LocalFrame
 from bridge.vehicle import HomeConfig, SensorsConfig
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
-from sitl.geodesy import LocalFrame
 
 MAG_EVERY_STEPS = 4  # 62.5 Hz
 BARO_EVERY_STEPS = 5  # 50 Hz

@@ -9,7 +9,6 @@ commanded to zero, stepping at wall-clock pace until actuator messages return).
 from __future__ import annotations
 
 import math
-import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -18,12 +17,13 @@ from typing import TextIO
 
 from bridge.framing import unpack_frame
 from bridge.link import Endpoint, UdpLink
-from bridge.messages import Heartbeat, HilActuatorControls, mavlink
+from bridge.messages import Heartbeat, HilActuatorControls, mavlink, sanitize_throttles
+from bridge.shutdown import StopSignals
 from bridge.signing import Signing
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
 from sitl.ground_link import GroundLink, GroundState, Home
-from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, HilEncoder, sanitize_throttles, statustext
+from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, HilEncoder, statustext
 from sitl.sensors import SensorModel
 from sitl.status import CommandStats, StatusSnapshot, format_status
 
@@ -74,8 +74,10 @@ class SitlServer:
         self.link = self._open_link(signing)
         self.encoder = HilEncoder(v.home, self.link)
         try:
+            ground_signing = Signing(options.signing_key, link_id=1) if options.signing_key else None
             self.ground = GroundLink(
-                [(e.host, e.port) for e in options.ground], Home(v.home.lat, v.home.lon, v.home.alt)
+                [(e.host, e.port) for e in options.ground], Home(v.home.lat, v.home.lon, v.home.alt),
+                ground_signing,
             )
         except BaseException:
             self.link.close()
@@ -88,6 +90,10 @@ class SitlServer:
         self.last_cmd_usec = -1  # time_usec stamped on the last applied actuator command
         self.last_cmd_sim_usec = 0  # simulated time when the last actuator command was applied
         self._last_reply_usec = -1  # time_usec of the last accepted actuator message, as stamped
+        self._companion_heard = 0.0  # wall time (monotonic s) the bound companion last spoke
+        # another sender may take the HIL link over only after the companion was silent this long (wall s)
+        lockstep = options.mode == "lockstep"
+        self._takeover_after = options.lockstep_timeout if lockstep else options.realtime_timeout
         self.steps = 0
         self.pending_text: list = []
         self._stop = False
@@ -115,21 +121,20 @@ class SitlServer:
 
     def run(self) -> int:
         """Serve until SIGINT/SIGTERM or --max-steps; returns the exit code (0)."""
-        previous = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            self._say(self._listening_line())
-            while not self._stop and not self._done():
-                if self.phase in ("waiting", "starting"):
-                    self._serve_connect()
-                elif self.phase == "failsafe" or self.options.mode == "realtime":
-                    self._serve_paced()
-                else:
-                    self._serve_lockstep()
-            self._say(self._status_line(time.monotonic()) + " (exit)")
-        finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
-            self.close()
+        # The first SIGINT/SIGTERM stops the loop; later ones are absorbed, so the shutdown always completes.
+        with StopSignals(on_stop=self.stop):
+            try:
+                self._say(self._listening_line())
+                while not self._stop and not self._done():
+                    if self.phase in ("waiting", "starting"):
+                        self._serve_connect()
+                    elif self.phase == "failsafe" or self.options.mode == "realtime":
+                        self._serve_paced()
+                    else:
+                        self._serve_lockstep()
+                self._say(self._status_line(time.monotonic()) + " (exit)")
+            finally:
+                self.close()
         return 0
 
     def close(self) -> None:
@@ -137,7 +142,8 @@ class SitlServer:
         self.link.close()
         self.ground.close()
 
-    def _on_signal(self, signum, frame) -> None:
+    def stop(self) -> None:
+        """Ask the serving loop to end (it returns within MAX_WAIT_S); safe to call any number of times."""
         self._stop = True
 
     def _done(self) -> bool:
@@ -317,26 +323,36 @@ class SitlServer:
     # HIL input
 
     def _read(self, frames: list, accept_from: int) -> tuple[bool, tuple | None]:
-        """(a HEARTBEAT came, the throttles of the newest actuator message with time_usec >= accept_from).
+        """(the companion spoke, the throttles of its newest reply to a HIL_SENSOR sent at >= accept_from).
 
-        frames are the link's checked, undecoded frames: only HIL_ACTUATOR_CONTROLS payloads are unpacked.
+        frames are one datagram's checked, undecoded frames: only HIL_ACTUATOR_CONTROLS payloads are unpacked.
+        Binding: only the companion's frames count; another sender is ignored (counted as foreign) until the
+        companion has been silent past the failsafe bound. A reply counts only if its time_usec is that of a
+        HIL_SENSOR the SITL sent (on the step grid, not after the last one sent) and not before accept_from.
         """
+        sender = self.link.peer
+        if sender != self.companion and self.companion is not None and (
+            time.monotonic() - self._companion_heard <= self._takeover_after
+        ):
+            self.commands.foreign += len(frames)
+            return False, None
         hello = False
         reply = None
         stats = self.commands
+        last_sent = self.last_sent_usec
         for spec, frame, header_len, signature_len in frames:
             msg_id = spec.msg_id
             if msg_id == ACTUATOR_ID:
                 values = unpack_frame(frame, header_len, signature_len, spec)  # time_usec, flags, controls..
                 time_usec = values[0]
-                throttles, nonfinite, clamped = sanitize_throttles(values[2:6])
-                stats.nonfinite += nonfinite
-                stats.clamped += clamped
-                if time_usec >= accept_from:
+                hello = True  # the companion speaks (its first reply may come before any step was sent)
+                if accept_from <= time_usec <= last_sent and time_usec % EXCHANGE_STEP_USEC == 0:
+                    throttles, nonfinite, clamped = sanitize_throttles(values[2:6])
+                    stats.nonfinite += nonfinite
+                    stats.clamped += clamped
                     reply = throttles
                     stats.commands += 1
-                    # A stamp from the future (no such step was sent) must not make later commands stale.
-                    self.last_cmd_usec = min(time_usec, self.last_sent_usec)
+                    self.last_cmd_usec = time_usec
                     self._last_reply_usec = time_usec
                 else:
                     stats.stale += 1
@@ -344,6 +360,9 @@ class SitlServer:
                 hello = True
             else:
                 stats.ignored += 1
+        if hello:
+            self.companion = sender
+            self._companion_heard = time.monotonic()
         return hello, reply
 
     def _keep_peer(self) -> None:

@@ -12,11 +12,13 @@ class CommandStats:
     """What the SITL refused or repaired in actuator input (beyond the link's frame-level drops)."""
 
     commands: int = 0  # HIL_ACTUATOR_CONTROLS accepted and applied
-    stale: int = 0  # lockstep: older than the last HIL_SENSOR sent; real time: older than the last applied
+    stale: int = 0  # not stamped with a HIL_SENSOR's time_usec (lockstep: the last one; real time: since
+    #                  the last applied)
     nonfinite: int = 0  # throttles that were NaN or infinite (treated as 0)
     clamped: int = 0  # throttles outside [0, 1] (clamped)
     ignored: int = 0  # valid frames of other message ids (not HEARTBEAT or HIL_ACTUATOR_CONTROLS)
     failsafes: int = 0  # times the failsafe engaged
+    foreign: int = 0  # frames from another sender than the bound companion (ignored)
     resent: int = 0  # lockstep steps re-sent because their reply was late (0.1 s) or lost
 
     def as_dict(self) -> dict[str, int]:
@@ -54,7 +56,7 @@ def format_status(s: StatusSnapshot) -> str:
         f"mode={s.mode} phase={s.phase} companion={who} pos_ned=({n:.3f},{e:.3f},{d:.3f})m "
         f"hil: sent={link.frames_sent} recv={link.frames_received} dropped={link.dropped} [{drop_text}] "
         f"cmds={c.commands} stale={c.stale} nonfinite={c.nonfinite} clamped={c.clamped} ignored={c.ignored} "
-        f"resent={c.resent} failsafe={'ON' if s.phase == 'failsafe' else 'off'} "
+        f"foreign={c.foreign} resent={c.resent} failsafe={'ON' if s.phase == 'failsafe' else 'off'} "
         f"failsafes={c.failsafes}"
     )
 

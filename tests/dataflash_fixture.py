@@ -168,9 +168,9 @@ def fly_synthetic(duration: float = 6.0, seed: int = 0) -> SyntheticFlight:
 
 def specific_force(xi: np.ndarray, accel_ned: np.ndarray, g: float) -> np.ndarray:
     """Specific force FRD (N,3) m/s^2 = R^T (a - g e3) for states xi (N,12) and NED accelerations (N,3)."""
-    from identification.targets import rotation_matrices
+    from bridge.rotations import rotation_matrix
 
-    r = rotation_matrices(xi[:, 6:9])
+    r = rotation_matrix(xi[:, 6], xi[:, 7], xi[:, 8])
     a = accel_ned.copy()
     a[:, 2] -= g
     return np.einsum("nji,nj->ni", r, a)

@@ -10,8 +10,9 @@ import pytest
 import sympy
 
 from bridge.errors import UserError
+from bridge.rotations import rotation_matrix
 from bridge.vehicle import load_vehicle
-from controller.backstepping import BacksteppingController, ModelErrorObserver, rotation
+from controller.backstepping import BacksteppingController, ModelErrorObserver
 from controller.gains import BacksteppingGains, gains_from_dict, load_gains
 from controller.plugin import Reference, VehicleState
 from controller.simulate import ModelPlant, simulate
@@ -377,7 +378,7 @@ def test_model_error_observer_filter_frame_clamp_and_nan():
         d_ned, rate = obs.end_step(dt, list(xi))
     np.testing.assert_allclose(d_ned[:3], true_d, atol=1e-4)  # e^-10 of it left
     np.testing.assert_allclose(d_ned[3:], [0.05, 0.0, 0.0], atol=1e-5)
-    r = np.array(rotation(xi[6], xi[7], xi[8]))
+    r = rotation_matrix(xi[6], xi[7], xi[8])
     np.testing.assert_allclose(obs.value[:3], r.T @ true_d, atol=1e-4)  # kept in the body frame FRD
     w = np.array(xi[9:12])
     np.testing.assert_allclose(rate, r @ np.cross(w, obs.value[:3]), atol=1e-12)  # d_ned' = R (w x d_b)

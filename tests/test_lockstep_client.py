@@ -99,6 +99,8 @@ def test_throttles_are_cleaned_before_sending():
         client.connect(5.0)
         client.step([math.nan, 1.5, -0.2, 0.25])
         np.testing.assert_allclose(sitl.commands[0].throttles, [0.0, 1.0, 0.0, 0.25])
+        client.step([math.inf, -math.inf, 1.0, 0.0])  # +inf is 0 (motor off), as the SITL takes it
+        np.testing.assert_allclose(sitl.commands[1].throttles, [0.0, 0.0, 1.0, 0.0])
         with pytest.raises(ValueError):
             client.step([0.5, 0.5])
 

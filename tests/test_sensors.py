@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from bridge.geodesy import EARTH_RADIUS, LocalFrame, geodetic_to_ned, ned_to_geodetic
 from bridge.vehicle import HomeConfig, ImuNoiseConfig, VehicleConfig, load_vehicle
 from sitl.dynamics import Quadrotor
-from sitl.geodesy import EARTH_RADIUS, LocalFrame, geodetic_to_ned, ned_to_geodetic
 from sitl.sensors import (
     BARO_EVERY_STEPS,
     FIELDS_BARO,

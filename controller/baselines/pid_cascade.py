@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.rotations import quaternion_from_euler, quaternion_from_rotation
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from controller.plugin import Command, Reference, VehicleState, as_floats
 
@@ -121,34 +122,6 @@ def _q_from_two_vectors(src: tuple, dst: tuple) -> tuple:
     return qw / n, qx / n, qy / n, qz / n
 
 
-def _q_from_dcm(r: tuple) -> tuple:
-    """Unit quaternion of a rotation matrix given as rows ((r00, r01, r02), ...)."""
-    (a, b, c), (d, e, f), (g, h, i) = r
-    tr = a + e + i
-    if tr > 0.0:
-        s = math.sqrt(tr + 1.0) * 2.0
-        qw, qx, qy, qz = 0.25 * s, (h - f) / s, (c - g) / s, (d - b) / s
-    elif a > e and a > i:
-        s = math.sqrt(1.0 + a - e - i) * 2.0
-        qw, qx, qy, qz = (h - f) / s, 0.25 * s, (b + d) / s, (c + g) / s
-    elif e > i:
-        s = math.sqrt(1.0 + e - a - i) * 2.0
-        qw, qx, qy, qz = (c - g) / s, (b + d) / s, 0.25 * s, (f + h) / s
-    else:
-        s = math.sqrt(1.0 + i - a - e) * 2.0
-        qw, qx, qy, qz = (d - b) / s, (c + g) / s, (f + h) / s, 0.25 * s
-    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    return qw / n, qx / n, qy / n, qz / n
-
-
-def _q_from_euler(phi: float, theta: float, psi: float) -> tuple:
-    cr, sr = math.cos(0.5 * phi), math.sin(0.5 * phi)
-    cp, sp = math.cos(0.5 * theta), math.sin(0.5 * theta)
-    cy, sy = math.cos(0.5 * psi), math.sin(0.5 * psi)
-    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
-
-
 def body_z_to_attitude(body_z: tuple, yaw: float) -> tuple:
     """PX4's ControlMath::bodyzToAttitude: attitude quaternion with body z = body_z (NED) and heading yaw."""
     bz0, bz1, bz2 = body_z
@@ -165,7 +138,7 @@ def body_z_to_attitude(body_z: tuple, yaw: float) -> tuple:
     n = math.sqrt(bx0 * bx0 + bx1 * bx1 + bx2 * bx2)
     bx0, bx1, bx2 = bx0 / n, bx1 / n, bx2 / n
     by0, by1, by2 = bz1 * bx2 - bz2 * bx1, bz2 * bx0 - bz0 * bx2, bz0 * bx1 - bz1 * bx0
-    return _q_from_dcm(((bx0, by0, bz0), (bx1, by1, bz1), (bx2, by2, bz2)))
+    return quaternion_from_rotation(((bx0, by0, bz0), (bx1, by1, bz1), (bx2, by2, bz2)))
 
 
 Vec3 = tuple[float, float, float]
@@ -478,7 +451,7 @@ class PidCascadeController:
         if state.quaternion is not None:
             q = as_floats(state.quaternion)
         else:
-            q = _q_from_euler(xi[6], xi[7], xi[8])
+            q = quaternion_from_euler(xi[6], xi[7], xi[8])
         tx, ty, tz = self._thrust_setpoint(xi[0:3], xi[3:6], reference)
         collective = math.sqrt(tx * tx + ty * ty + tz * tz)
         qd = body_z_to_attitude((-tx, -ty, -tz), reference.yaw)

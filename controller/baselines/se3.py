@@ -29,6 +29,8 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.rotations import rotation_from_euler as rotation_from_euler_rows
+from bridge.rotations import rotation_from_quaternion as rotation_from_quaternion_rows
 from bridge.vehicle import VehicleConfig
 from controller.allocation import allocate
 from controller.plugin import Command, Reference, VehicleState, as_floats
@@ -88,40 +90,23 @@ def vee(m: np.ndarray) -> np.ndarray:
     return np.array((m[2, 1], m[0, 2], m[1, 0]))
 
 
-def _rotation_from_quaternion(w: float, x: float, y: float, z: float) -> tuple[float, ...]:
-    """Rotation matrix body->earth of a unit quaternion, as 9 floats row by row."""
-    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
-
-
-def _rotation_from_euler(phi: float, theta: float, psi: float) -> tuple[float, ...]:
-    """R = Rz(psi) Ry(theta) Rx(phi) of ZYX Euler angles (rad), as 9 floats row by row."""
-    cf, sf = math.cos(phi), math.sin(phi)
-    ct, st = math.cos(theta), math.sin(theta)
-    cp, sp = math.cos(psi), math.sin(psi)
-    return (ct * cp, sf * st * cp - cf * sp, cf * st * cp + sf * sp,
-            ct * sp, sf * st * sp + cf * cp, cf * st * sp - sf * cp,
-            -st, sf * ct, cf * ct)
-
-
 def rotation_from_quaternion(q: np.ndarray) -> np.ndarray:
     """Rotation matrix body->earth of a scalar-first unit quaternion (w, x, y, z)."""
     w, x, y, z = q
-    return np.array(_rotation_from_quaternion(w, x, y, z)).reshape(3, 3)
+    return np.array(rotation_from_quaternion_rows(w, x, y, z)).reshape(3, 3)
 
 
 def rotation_from_euler(phi: float, theta: float, psi: float) -> np.ndarray:
     """R = Rz(psi) Ry(theta) Rx(phi), body->earth, of ZYX Euler angles (rad)."""
-    return np.array(_rotation_from_euler(phi, theta, psi)).reshape(3, 3)
+    return np.array(rotation_from_euler_rows(phi, theta, psi)).reshape(3, 3)
 
 
 def _state_rotation(state: VehicleState, xi: list[float]) -> tuple[float, ...]:
     """Body->earth rotation of a VehicleState (xi as floats), 9 floats row by row."""
     if state.quaternion is not None:
         w, x, y, z = as_floats(state.quaternion)
-        return _rotation_from_quaternion(w, x, y, z)
-    return _rotation_from_euler(xi[6], xi[7], xi[8])
+        return rotation_from_quaternion_rows(w, x, y, z)
+    return rotation_from_euler_rows(xi[6], xi[7], xi[8])
 
 
 def state_rotation(state: VehicleState) -> np.ndarray:

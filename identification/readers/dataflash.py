@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.geodesy import flat_earth_ned
 from identification.motor_model import ThrustCurve
 from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.table import Dataset
@@ -52,7 +53,6 @@ from identification.targets import (
 
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 MOTOR_FUNCTIONS = (33, 34, 35, 36)  # SERVOn_FUNCTION of Motor1..Motor4
-EARTH_RADIUS = 6378137.0  # m, WGS84 equatorial
 WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "EKF1", "POS", "ESC", "RCOU", "BAT", "EV")
 EV_ARMED, EV_DISARMED = 10, 11  # EV Id of ArduCopter's ARMED and DISARMED events
 
@@ -234,10 +234,7 @@ def _position_streams(msgs: dict[str, list[Any]], path: Path, notes: list[str]) 
     pos = _need(msgs, "POS", path, "the position and velocity (no XKF1, NKF1 or EKF1 either)")
     t = _times(pos, path)
     lat, lon, alt = (_field(pos, c, path) for c in ("Lat", "Lng", "Alt"))
-    north = np.radians(lat - lat[0]) * EARTH_RADIUS
-    east = np.radians(lon - lon[0]) * EARTH_RADIUS * math.cos(math.radians(lat[0]))
-    down = -(alt - alt[0])
-    p = np.column_stack((north, east, down))
+    p = flat_earth_ned(lat, lon, alt)
     v = stream_derivative(t, p)
     notes.append(
         "no XKF1/NKF1/EKF1: position from POS (flat earth from the first fix), velocity by differentiating it"

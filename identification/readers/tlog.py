@@ -22,13 +22,13 @@ import numpy as np
 
 from bridge.errors import UserError
 from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT, RPM_TO_RAD_S, ObservationAssembler
+from bridge.rotations import euler_from_quaternions
 from bridge.tlog import read_tlog
 from identification.readers import RowFilter, make_dataset, rotor_model
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
-    euler_from_quaternions,
     sensor_targets,
     truth_targets,
 )

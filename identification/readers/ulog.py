@@ -33,13 +33,13 @@ import numpy as np
 from scipy.ndimage import maximum_filter1d
 
 from bridge.errors import UserError
+from bridge.rotations import euler_from_quaternions
 from identification.motor_model import ThrustCurve
 from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
-    euler_from_quaternions,
     nominal_step,
     sensor_targets,
     stream_derivative,

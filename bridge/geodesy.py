@@ -1,7 +1,11 @@
-"""Local NED (m) <-> geodetic (lat, lon deg, alt m AMSL) about a home point, as PX4's map projection does.
+"""Local NED (m) <-> geodetic (lat, lon deg, alt m AMSL): the project's one geodesy, for every part.
 
-Azimuthal equidistant projection on a sphere of radius 6371 km (PX4's MapProjection): exact inverses of each
-other, so a round trip is limited by float rounding only (micrometres). Altitude is home.alt - down.
+LocalFrame: PX4's map projection, azimuthal equidistant on a sphere of radius 6371 km (PX4's MapProjection),
+used by the SITL (HIL_GPS, ground link) and the companion's estimator: to_geodetic and to_ned are exact
+inverses of each other, so a round trip is limited by float rounding only (micrometres). Altitude is
+home.alt - down.
+flat_earth_ned: ArduPilot's flat-earth Location distances (its LOCATION_SCALING_FACTOR), for positions in
+ArduPilot logs.
 """
 
 from __future__ import annotations
@@ -9,7 +13,11 @@ from __future__ import annotations
 import math
 from typing import Protocol
 
+import numpy as np
+
 EARTH_RADIUS = 6371000.0  # m, as PX4's CONSTANTS_RADIUS_OF_EARTH
+# m: ArduPilot's LOCATION_SCALING_FACTOR (0.011131884502145034 m per 1e-7 deg) as a radius
+ARDUPILOT_EARTH_RADIUS = 0.011131884502145034 * 1e7 * 180.0 / math.pi
 
 
 class _GeoPoint(Protocol):
@@ -72,3 +80,14 @@ def ned_to_geodetic(north: float, east: float, down: float, home: _GeoPoint) -> 
 def geodetic_to_ned(lat: float, lon: float, alt: float, home: _GeoPoint) -> tuple[float, float, float]:
     """NED position (m) about home of a geodetic point (lat, lon deg; alt m AMSL)."""
     return LocalFrame.at(home).to_ned(lat, lon, alt)
+
+
+def flat_earth_ned(lat: np.ndarray, lon: np.ndarray, alt: np.ndarray) -> np.ndarray:
+    """(N, 3) NED m of geodetic points (deg, deg, m AMSL) from the first one, as ArduPilot's Location does.
+
+    North = d_lat * R, east = d_lon * R * cos(mean latitude of the two points) with ArduPilot's radius.
+    """
+    lat, lon, alt = (np.asarray(a, dtype=float) for a in (lat, lon, alt))
+    north = np.radians(lat - lat[0]) * ARDUPILOT_EARTH_RADIUS
+    east = np.radians(lon - lon[0]) * ARDUPILOT_EARTH_RADIUS * np.cos(np.radians((lat + lat[0]) / 2.0))
+    return np.column_stack((north, east, -(alt - alt[0])))
