@@ -31,13 +31,13 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from bridge.errors import UserError  # noqa: E402
+from bridge.rotations import rotation_matrix  # noqa: E402
 from identification.dataset import load_dataset  # noqa: E402
 from identification.metrics import r2  # noqa: E402
 from identification.model_report import equations_block  # noqa: E402
 from identification.plausibility import checks_text, plausibility_checks  # noqa: E402
 from identification.quad_model import QuadrotorModel  # noqa: E402
 from identification.table import TARGET_NAMES  # noqa: E402
-from identification.targets import rotation_matrices  # noqa: E402
 
 LIFT_OFF, TOUCH_DOWN = 19.0, 26.3  # px4_sitl_quad_takeoff.ulg, hand-labelled (tests/test_dataset_ulog.py)
 COMBINATIONS = {
@@ -52,7 +52,7 @@ def baseline_features(target: str, xi: np.ndarray, u: np.ndarray) -> np.ndarray:
     j = TARGET_NAMES.index(target)
     ones = np.ones(len(xi))
     if j < 3:
-        r = rotation_matrices(xi[:, 6:9])
+        r = rotation_matrix(*xi[:, 6:9].T)
         f1 = (u**2).sum(axis=1)
         return np.column_stack((ones, -f1 * r[:, j, 2], xi[:, 3 + j]))
     return np.column_stack((ones, (u**2) @ COMBINATIONS[target], xi[:, 9 + j - 3]))

@@ -22,8 +22,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from bridge.rotations import rotation_matrix
 from identification.table import Dataset
-from identification.targets import STANDARD_GRAVITY, rotation_matrices
+from identification.targets import STANDARD_GRAVITY
 
 W_REF = 1000.0  # rad/s: equivalent rotor speed at full thrust
 K_GRID = tuple(round(0.1 * i, 1) for i in range(11))
@@ -66,7 +67,7 @@ class ThrustCurve:
 
 def thrust_direction_r2(ds: Dataset, u: np.ndarray, gravity: float = STANDARD_GRAVITY) -> tuple[float, float]:
     """(R^2 over ax, ay, az stacked, c in m/s^2 per (rad/s)^2) of a_NED - g e3 = -c sum(u^2) R e3."""
-    r = rotation_matrices(ds.xi[:, 6:9])
+    r = rotation_matrix(*ds.xi[:, 6:9].T)
     f1 = (u**2).sum(axis=1)
     x = (-f1[:, None] * r[:, :, 2]).reshape(-1)
     y = (ds.targets[:, :3] - np.array([0.0, 0.0, gravity])).reshape(-1)

@@ -23,10 +23,11 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from bridge.rotations import euler_from_quaternions
 from identification.motor_model import ThrustCurve
 from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.table import Dataset
-from identification.targets import euler_from_quaternions, stream_derivative
+from identification.targets import stream_derivative
 
 REQUIRED = ("t", "x", "y", "z", "vx", "vy", "vz", "wx", "wy", "wz")
 EULER = ("phi", "theta", "psi")
