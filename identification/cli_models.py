@@ -287,7 +287,7 @@ def run_identify(args: argparse.Namespace) -> int:
     pick = _load(args.pick_log, args.targets_from, args.motor_curve, args) if args.pick_log else None
     check = _load(args.validate_log, args.targets_from, args.motor_curve, args) if args.validate_log else None
 
-    def roles():
+    def split_roles():
         return assign_roles(dataset, pick=pick, validate=check, pick_fraction=args.holdout,
                             validate_fraction=args.validate_fraction, gap_s=gap)
 
@@ -295,7 +295,7 @@ def run_identify(args: argparse.Namespace) -> int:
     if args.motor_curve is None:
         from identification.motor_model import apply_thrust_curve, choose_motor_model
 
-        motor, why = choose_motor_model(roles().fit)  # chosen on the fit rows only
+        motor, why = choose_motor_model(split_roles().fit)  # chosen on the fit rows only
         if motor is not None:
             dataset = apply_thrust_curve(dataset, motor)
             pick = apply_thrust_curve(pick, motor) if pick is not None else None
@@ -334,7 +334,7 @@ def run_identify(args: argparse.Namespace) -> int:
     )
     print(f"validation (rows used neither to fit nor to pick: {where}):")
     print(table_markdown(metrics), end="")
-    _print_and_report(model, motor, roles(), args, out, vehicle_config)
+    _print_and_report(model, motor, split_roles(), args, out, vehicle_config)
     print(f"wrote {out}")
     below = model.extra["checks"]["below_threshold"]
     if below:
