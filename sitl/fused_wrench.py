@@ -100,9 +100,9 @@ def fused_airframe_wrench(vehicle: VehicleConfig, wind: list[float]) -> Callable
                    + (x4 * fy4 - y4 * fx4))
         if has_frame:  # sitl.frame_drag: -|v_a| C v_a - Cd v_a |v_a| per axis
             speed = sqrt(ux * ux + uy * uy + uz * uz)
-            fbx += -(speed * cx + dx * abs(ux)) * ux
-            fby += -(speed * cy + dy * abs(uy)) * uy
-            fbz += -(speed * cz + dz * abs(uz)) * uz
+            fbx += -(speed * cx + dx * (ux if ux > 0.0 else -ux)) * ux  # |u| without a builtin call
+            fby += -(speed * cy + dy * (uy if uy > 0.0 else -uy)) * uy
+            fbz += -(speed * cz + dz * (uz if uz > 0.0 else -uz)) * uz
         return fbx, fby, fbz, tx, ty, tz, hz
 
     return wrench
