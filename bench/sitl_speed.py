@@ -4,7 +4,8 @@ for both bundled vehicles: fang-chen-buaa (the paper's physics) and fang-chen-ae
 noise 10 rad/s and wind: 5 m/s steady, moderate Dryden turbulence, a 1-cosine gust, WIND_COV sent each step).
 
 Prints, each as the median of --repeats runs:
-  physics       Quadrotor.step + SensorModel.sample, no MAVLink (steps/s; floor 20,000 with every effect on)
+  physics       Quadrotor.step + SensorModel.sample, no MAVLink (steps/s; floor 20,000 with every effect on),
+                also by the process's CPU time (what the machine's load changes least)
   ceiling       a bare pymavlink HIL_SENSOR -> HIL_ACTUATOR_CONTROLS ping-pong between two processes over
                 loopback UDP (round trips/s): what one lockstep exchange can cost at best
   full          `quadsr sitl` in lockstep with a trivial companion (bridge.lockstep.LockstepClient, constant
@@ -51,8 +52,9 @@ def bench_vehicle(name: str):
     return dataclasses.replace(vehicle, motor=dataclasses.replace(vehicle.motor, speed_noise=10.0))
 
 
-def physics_rate(steps: int, name: str = "fang-chen-buaa") -> float:
-    """Steps/s of Quadrotor.step + SensorModel.sample alone (realistic sensors)."""
+def physics_rate(steps: int, name: str = "fang-chen-buaa") -> tuple[float, float]:
+    """(steps/s by wall time, steps/s by this process's CPU time) of Quadrotor.step + SensorModel.sample alone
+    (realistic sensors). The CPU-time rate depends less on the machine's load."""
     from sitl.dynamics import Quadrotor
     from sitl.sensors import SensorModel
 
@@ -60,11 +62,11 @@ def physics_rate(steps: int, name: str = "fang-chen-buaa") -> float:
     quad = Quadrotor(vehicle)
     sensors = SensorModel(vehicle.sensors, vehicle.home, 0)
     throttles = (0.6, 0.61, 0.6, 0.61)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(steps):
         quad.step(throttles)
         sensors.sample(quad)
-    return steps / (time.perf_counter() - t0)
+    return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
 
 
 def echo_server() -> None:
@@ -179,13 +181,15 @@ def main() -> int:
     if args.echo:
         echo_server()
         return 0
-    kinds = ("physics", "full", "sitl_cpu", "client_cpu")
+    kinds = ("physics", "physics_cpu", "full", "sitl_cpu", "client_cpu")
     names = ["ceiling"] + [f"{k} {v}" for v in VEHICLES for k in kinds]
     results: dict[str, list[float]] = {k: [] for k in names}
     for i in range(args.repeats):
         results["ceiling"].append(ceiling_rate(args.steps))
         for v in VEHICLES:
-            results[f"physics {v}"].append(physics_rate(args.steps, v))
+            physics, physics_cpu = physics_rate(args.steps, v)
+            results[f"physics {v}"].append(physics)
+            results[f"physics_cpu {v}"].append(physics_cpu)
             extra = ("--vehicle", v) + (AERO_WIND_FLAGS if v == "fang-chen-aero" else ())
             rate, sitl_cpu, client_cpu = full_rate(args.steps, extra)
             results[f"full {v}"].append(rate)
@@ -202,7 +206,7 @@ def main() -> int:
         ratio = full / med["ceiling"]
         print(f"{v}:")
         print(f"  physics alone (Quadrotor.step + SensorModel.sample): {physics:,.0f} steps/s "
-              f"({1e6 / physics:.1f} us/step)")
+              f"({1e6 / physics:.1f} us/step); by CPU time {med[f'physics_cpu {v}']:,.0f} steps/s")
         print(f"  full SITL in lockstep (LockstepClient, constant throttles): {full:,.0f} steps/s "
               f"({1e6 / full:.1f} us/step, {full * 0.004:.1f}x real time)")
         print(f"  CPU per step: SITL process {med[f'sitl_cpu {v}']:.0f} us (physics, sensors, frames, UDP), "

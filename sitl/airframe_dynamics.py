@@ -12,7 +12,8 @@ airspeed:
 The effects are plug-ins of two kinds, each built from the vehicle file and None when off: thrust modifiers
 (sitl.translational_lift adds to T_i, sitl.ground_effect multiplies it) and wrench sources (sitl.rotor_drag,
 sitl.frame_drag). The wind list is read at every call (sitl.dynamics.Quadrotor sets it once per exchange
-step).
+step). This composition is the readable reference; the SITL steps with sitl.fused_wrench, the same wrench in
+one pass, which tests/test_fused_wrench.py holds equal to it.
 """
 
 from __future__ import annotations

@@ -70,32 +70,37 @@ class DrydenTurbulence:
             parts.append(_discrete(a, b, c, self.sigma[i], dt))
         # plain floats from here on: one step per 4 ms exchange, numpy's per-call cost would dominate
         (self._au,), (self._lu,) = parts[0][0].tolist(), parts[0][1].tolist()
-        self._av, self._lv = parts[1][0].tolist(), parts[1][1].tolist()
-        self._aw, self._lw = parts[2][0].tolist(), parts[2][1].tolist()
-        self._c = [p[2].tolist() for p in parts]
+        (self._cu,) = parts[0][2].tolist()
+        # the 2x2 transitions A, lower-triangular noise factors L and outputs C of v and w, entry by entry
+        (self._av00, self._av01), (self._av10, self._av11) = parts[1][0].tolist()
+        (self._lv00, _), (self._lv10, self._lv11) = parts[1][1].tolist()
+        self._cv0, self._cv1 = parts[1][2].tolist()
+        (self._aw00, self._aw01), (self._aw10, self._aw11) = parts[2][0].tolist()
+        (self._lw00, _), (self._lw10, self._lw11) = parts[2][1].tolist()
+        self._cw0, self._cw1 = parts[2][2].tolist()
         x0 = [(p[3] @ self._rng.standard_normal(p[3].shape[0])).tolist() for p in parts]  # stationary start
         self._xu = x0[0][0]
-        self._xv = x0[1]
-        self._xw = x0[2]
+        self._xv0, self._xv1 = x0[1]
+        self._xw0, self._xw1 = x0[2]
         self._noise: list[float] = []
 
     def current(self) -> Vec3:
         """The turbulence now, (u, v, w) m/s in the mean-wind axes."""
-        (cu,), (cv0, cv1), (cw0, cw1) = self._c
-        return cu * self._xu, cv0 * self._xv[0] + cv1 * self._xv[1], cw0 * self._xw[0] + cw1 * self._xw[1]
+        return (self._cu * self._xu, self._cv0 * self._xv0 + self._cv1 * self._xv1,
+                self._cw0 * self._xw0 + self._cw1 * self._xw1)
 
     def step(self) -> Vec3:
-        """Advance dt seconds; the new (u, v, w), m/s."""
+        """Advance dt seconds (x' = A x + L n for each filter); the new (u, v, w), m/s."""
         if not self._noise:  # white noise drawn in blocks, 5 numbers a step, in a fixed order
             self._noise = self._rng.standard_normal(5 * NOISE_BLOCK).tolist()[::-1]
         pop = self._noise.pop
         self._xu = self._au[0] * self._xu + self._lu[0] * pop()
-        self._xv = _second_order(self._av, self._lv, self._xv, pop(), pop())
-        self._xw = _second_order(self._aw, self._lw, self._xw, pop(), pop())
+        n0, n1 = pop(), pop()
+        x0, x1 = self._xv0, self._xv1
+        self._xv0 = self._av00 * x0 + self._av01 * x1 + self._lv00 * n0
+        self._xv1 = self._av10 * x0 + self._av11 * x1 + self._lv10 * n0 + self._lv11 * n1
+        n0, n1 = pop(), pop()
+        x0, x1 = self._xw0, self._xw1
+        self._xw0 = self._aw00 * x0 + self._aw01 * x1 + self._lw00 * n0
+        self._xw1 = self._aw10 * x0 + self._aw11 * x1 + self._lw10 * n0 + self._lw11 * n1
         return self.current()
-
-
-def _second_order(a: list, low: list, x: list, n0: float, n1: float) -> list[float]:
-    """x' = A x + L n for 2x2 A and lower-triangular L (lists of rows)."""
-    return [a[0][0] * x[0] + a[0][1] * x[1] + low[0][0] * n0,
-            a[1][0] * x[0] + a[1][1] * x[1] + low[1][0] * n0 + low[1][1] * n1]

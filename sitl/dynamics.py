@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from bridge.integration import Derivative, rk4_step
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from sitl.airframe_dynamics import airframe_wrench, inverse3
+from sitl.fused_wrench import fused_airframe_wrench
 from sitl.ground import make_ground
 from sitl.mixer import QuadXMixer
 from sitl.motors import Motors
@@ -32,15 +33,18 @@ EXCHANGE_STEP_USEC = 4000
 
 
 def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
-                    wind: list[float] | None = None) -> Derivative:
+                    wind: list[float] | None = None, *, reference: bool = False) -> Derivative:
     """The state derivative f(state, cmd) -> 17 floats, constants bound once.
 
     The paper's physics (VehicleConfig.paper_physics) take the closed form of the module docstring; any other
-    vehicle (its own rotor geometry, effects, wind) its body wrench from sitl.airframe_dynamics, which reads
-    `wind` (NED m/s) at every call. The rigid body (translation, attitude, rotation, motor lag) is shared.
+    vehicle (its own rotor geometry, effects, wind) its body wrench from sitl.fused_wrench (every effect in
+    one pass), or with reference=True from sitl.airframe_dynamics (the per-effect functions it must equal).
+    Both read `wind` (NED m/s) at every call. The rigid body (translation, attitude, rotation, motor lag) is
+    shared.
     """
     paper = vehicle.paper_physics
-    body_wrench = None if paper else airframe_wrench(vehicle, wind if wind is not None else [0.0, 0.0, 0.0])
+    wrench_of = airframe_wrench if reference else fused_airframe_wrench
+    body_wrench = None if paper else wrench_of(vehicle, wind if wind is not None else [0.0, 0.0, 0.0])
     itm = motors.inv_time_constant
     ct, k, cm, jm = mixer.ct, mixer.k, mixer.cm, mixer.jm
     g = vehicle.gravity

@@ -44,11 +44,12 @@ class Motors:
             raise ValueError(f"expected 4 throttles, got {len(throttles)}")
         if self._kind == "px4":  # MotorCurve.speed_for_throttle for PX4's model, inlined
             lin, quad, full = self._px4
+            sqrt = math.sqrt
             out = []
             for sigma in throttles:
                 s = float(sigma)
                 s = 0.0 if not s > 0.0 else (s if s < 1.0 else 1.0)
-                out.append(full * math.sqrt(lin * s + quad * s * s))
+                out.append(full * sqrt(lin * s + quad * s * s))
         elif self._kind == "polynomial":
             out = [self._zero_speed if not float(s) > 0.0 else self.curve.speed_for_throttle(float(s))
                    for s in throttles]
@@ -66,8 +67,10 @@ class Motors:
         if self._rng is not None:
             if not self._noise:  # drawn in blocks of NOISE_BLOCK steps, 4 numbers a step, in a fixed order
                 self._noise = self._rng.normal(0.0, self.speed_noise, 4 * NOISE_BLOCK).tolist()[::-1]
-            pop = self._noise.pop
-            out = [w + n if w + n > 0.0 else 0.0 for w, n in ((w, pop()) for w in out)]
+            pop = self._noise.pop  # one draw per motor, motors 1..4 in order
+            w1, w2, w3, w4 = out[0] + pop(), out[1] + pop(), out[2] + pop(), out[3] + pop()
+            return (w1 if w1 > 0.0 else 0.0, w2 if w2 > 0.0 else 0.0, w3 if w3 > 0.0 else 0.0,
+                    w4 if w4 > 0.0 else 0.0)
         return out[0], out[1], out[2], out[3]
 
     def speed_rate(self, commanded: float, speed: float) -> float:
