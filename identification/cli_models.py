@@ -66,11 +66,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--settings",
         default=None,
         metavar="FILE.yaml",
-        help="engine settings (YAML, every key optional: sparse, operon, pysr, selection, gate_r2; see "
-        "identification.engine)",
+        help="engine settings (YAML, every key optional: sparse, operon, pysr, selection, discovery; see "
+        "identification.engine_settings)",
     )
     p.add_argument(
-        "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file"
+        "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file (its gravity is used for body-frame learning)"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run_identify)
@@ -138,7 +138,8 @@ def _load(logs: list[str], targets_from: str, motor_curve: str | None):
 
 def run_identify(args: argparse.Namespace) -> int:
     """Identify the model and write it."""
-    from identification.engine import load_engine_settings
+    from identification.body_frame import STANDARD_GRAVITY
+    from identification.engine_settings import load_engine_settings
     from identification.identify import identify, parse_targets
     from identification.model_file import save_model
     from identification.validate import table_markdown
@@ -157,11 +158,13 @@ def run_identify(args: argparse.Namespace) -> int:
 
         require_pysr(settings.pysr.probe_timeout_s)  # fail before reading the logs
     vehicle = None
+    gravity = STANDARD_GRAVITY  # body-frame learning removes it; the vehicle's when given
     if args.vehicle:
         from bridge.vehicle import load_vehicle
         from identification.true_model import vehicle_provenance
 
-        vehicle = vehicle_provenance(load_vehicle(args.vehicle))
+        flown = load_vehicle(args.vehicle)
+        vehicle, gravity = vehicle_provenance(flown), flown.gravity
     dataset = _load(args.logs, args.targets_from, args.motor_curve)
     print(
         f"{len(dataset)} rows from {len(args.logs)} log(s); engine {args.engine}, budget {args.budget:g} s "
@@ -179,6 +182,7 @@ def run_identify(args: argparse.Namespace) -> int:
         settings=settings,
         vehicle=vehicle,
         progress=not args.no_progress,
+        gravity=gravity,
     )
     save_model(model, out)
     metrics = {n: t.metrics.get("validation", t.metrics.get("train")) for n, t in model.targets.items()}

@@ -14,9 +14,17 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from identification.body_frame import (
+    BODY_TARGET_NAMES,
+    STANDARD_GRAVITY,
+    body_fit_names,
+    body_targets,
+    composed_targets,
+    primitive_info,
+)
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
 from identification.metrics import LOSSES, table_metrics
-from identification.model_file import TARGET_NAMES, Model, TargetModel
+from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel
 from identification.pareto import attach_holdout, front_points, select
 
 
@@ -78,8 +86,13 @@ def identify(
     vehicle: dict[str, Any] | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    gravity: float = STANDARD_GRAVITY,
 ) -> Model:
-    """Identify the targets from a Dataset (identification.dataset); returns a learned Model."""
+    """Identify the targets from a Dataset (identification.dataset); returns a learned Model.
+
+    An engine that learns in the body frame (frame "body", the default engine) fits fx fy fz dwx dwy dwz
+    (identification.body_frame, with `gravity` in m/s^2) and the NED targets are composed from them.
+    """
     if engine not in ENGINE_NAMES:
         raise UserError(f"unknown engine {engine!r}", hint=f"choose one of {', '.join(ENGINE_NAMES)}")
     if loss not in LOSSES:
@@ -97,14 +110,19 @@ def identify(
         )
     X = np.hstack([train.xi, train.u])
     Xh = np.hstack([hold.xi, hold.u])
+    body_frame = getattr(make_engine(engine, settings), "frame", "ned") == "body"
+    fit_names, Y, Yh = tuple(targets), train.targets, hold.targets
+    if body_frame:
+        fit_names = body_fit_names(targets)
+        Y, Yh = body_targets(train.xi, Y, gravity), body_targets(hold.xi, Yh, gravity)
     targets_done: dict[str, TargetModel] = {}
     wall: dict[str, dict[str, float]] = {}
     gates: dict[str, float] = {}
     notes: list[str] = []
     total_start = time.perf_counter()
-    for name in targets:
-        j = TARGET_NAMES.index(name)
-        y, yh = train.targets[:, j], hold.targets[:, j]
+    for name in fit_names:
+        j = (BODY_TARGET_NAMES if body_frame else TARGET_NAMES).index(name)
+        y, yh = Y[:, j], Yh[:, j]
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
         okh = np.all(np.isfinite(Xh), axis=1) & np.isfinite(yh)
         eng = make_engine(engine, settings)
@@ -146,6 +164,10 @@ def identify(
         bar.close(f"R2={r2v:.6f} complexity {chosen.complexity} ({chosen.engine})")
         if log:
             log(f"{name}: R2 {r2v:.6f}, complexity {chosen.complexity}, {chosen.engine}, {elapsed:.1f} s")
+    body = None
+    if body_frame:
+        body = BodyModel(targets_done, primitive_info(), gravity)
+        targets_done = composed_targets(body, targets, X, train.targets, Xh, hold.targets)
     flights = [
         {
             "file": f.file,
@@ -174,4 +196,8 @@ def identify(
         engine_info["notes"] = notes
         for note in notes:
             print(f"note: {note}", file=sys.stderr)
-    return Model(targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info)
+    if body_frame:
+        engine_info["learned_in"] = "body frame FRD: fx fy fz dwx dwy dwz; ax ay az = R f_b + g e_z"
+    return Model(
+        targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info, body=body
+    )

@@ -336,7 +336,8 @@ class PaperPipeline:
         train = load_dataset(r.files["tlog_paper-train"])
         r.rows["train"] = len(train)
         r.model = identify(train, engine="default", budget_s=r.settings.budget_s, seed=r.seed,
-                           vehicle=vehicle_provenance(r.vehicle), progress=r.progress)
+                           vehicle=vehicle_provenance(r.vehicle), progress=r.progress,
+                           gravity=r.vehicle.gravity)
         r.files["model"] = save_model(r.model, r.out / "model.yaml")
         return f"{len(train)} rows; wrote {r.files['model']}"
 
