@@ -51,6 +51,9 @@ class Primitive:
     group: str  # primitives of one group with like units form a vector (for the norm operator)
     description: str
     angle: bool = False  # an angle in rad: sin/cos apply
+    positive: bool = False  # physically bounded away from zero: 1/x applies (height, not a velocity)
+    summable: bool = False  # one scalar of a kind per member (rotor speeds): signed sums over the group;
+    # not vector components (ub + vb mixes axes: no rotation-covariant law adds them)
 
 
 PRIMITIVES: dict[str, Primitive] = {
@@ -62,11 +65,11 @@ PRIMITIVES: dict[str, Primitive] = {
         Primitive("wx", (0, -1), "w_b", "body roll rate FRD (rad/s)"),
         Primitive("wy", (0, -1), "w_b", "body pitch rate FRD (rad/s)"),
         Primitive("wz", (0, -1), "w_b", "body yaw rate FRD (rad/s)"),
-        Primitive("u1", (0, -1), "rotor", "rotor 1 speed (rad/s)"),
-        Primitive("u2", (0, -1), "rotor", "rotor 2 speed (rad/s)"),
-        Primitive("u3", (0, -1), "rotor", "rotor 3 speed (rad/s)"),
-        Primitive("u4", (0, -1), "rotor", "rotor 4 speed (rad/s)"),
-        Primitive("h", (1, 0), "height", "height above ground = -z (m)"),
+        Primitive("u1", (0, -1), "rotor", "rotor 1 speed (rad/s)", summable=True),
+        Primitive("u2", (0, -1), "rotor", "rotor 2 speed (rad/s)", summable=True),
+        Primitive("u3", (0, -1), "rotor", "rotor 3 speed (rad/s)", summable=True),
+        Primitive("u4", (0, -1), "rotor", "rotor 4 speed (rad/s)", summable=True),
+        Primitive("h", (1, 0), "height", "height above ground = -z (m)", positive=True),
         Primitive("phi", (0, 0), "attitude", "roll (rad)", angle=True),
         Primitive("theta", (0, 0), "attitude", "pitch (rad)", angle=True),
     )

@@ -70,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "identification.engine_settings)",
     )
     p.add_argument(
-        "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file (its gravity is used for body-frame learning)"
+        "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file "
+        "(its gravity is used for body-frame learning)"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=run_identify)

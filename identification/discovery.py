@@ -101,7 +101,10 @@ class DiscoveryEngine:
     ):
         self.settings = settings or DiscoverySettings()
         check_settings(self.settings)
-        self.sparse = dataclasses.replace(sparse or SparseSettings(), forward_terms=self.settings.max_terms)
+        # no simpler-term swaps: over a grown pool they multiply the candidates for little gain
+        self.sparse = dataclasses.replace(
+            sparse or SparseSettings(), forward_terms=self.settings.max_terms, swap_max_terms=0
+        )
         self.name = name
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
@@ -164,18 +167,27 @@ class DiscoveryEngine:
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
         scale = float(np.std(yh)) if len(yh) else 1.0
-        pool: list[int] = []
+        basis = _Basis(len(y))
+        # rung 1 always in (combinations first: where a combination and its members are dependent, the
+        # combination stands for them); later features only where independent of the pool
+        pool: list[int] = [i for i in range(len(space)) if space.rungs[i] == 1 and basis.add(F[:, i])]
         candidates: list[Candidate] = []
+        seen: set[frozenset[int]] = set()
         residual = y.copy()
         best: Candidate | None = None
         for rnd in range(max(s.rounds, 1)):
             scores = _screen_scores(F, residual)
             scores[pool] = -np.inf
-            new = [int(i) for i in np.argsort(-scores, kind="stable")[: s.screen] if np.isfinite(scores[i])]
+            new: list[int] = []
+            for i in np.argsort(-scores, kind="stable"):
+                if len(new) >= s.screen or not np.isfinite(scores[i]):
+                    break
+                if basis.add(F[:, i]):
+                    new.append(int(i))
             if not new:
                 break
             pool += new
-            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss)
+            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
             attach_holdout(round_cands, Xh, yh, loss)
             candidates += round_cands
             best = select(candidates, _SELECTION, scale=scale)
@@ -202,18 +214,31 @@ class DiscoveryEngine:
         pool: np.ndarray,
         y: np.ndarray,
         loss: str,
+        seen: set[frozenset[int]],
     ) -> list[Candidate]:
-        """Every active set of the sparse paths over (1, pool features) as a candidate."""
+        """Every new active set of the sparse paths over (1, pool features) as a candidate (seen: sets so far,
+        as feature indices with -1 for the constant)."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])
         problem = LeastSquaresProblem(theta, y)
         exprs = [sympy.Integer(1)] + [space.expressions[i] for i in pool]
-        feats = [Feature(str(e), e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
+        feats = [Feature(f"x{k}", e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
                  for k, e in enumerate(exprs)]
         nodes = [complexity(e) for e in exprs]
         sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes)
-        out: list[Candidate] = []
-        for active in sets:
+        by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
+        for k, active in enumerate(sets):
+            key = frozenset(int(pool[j - 1]) if j > 0 else -1 for j in np.flatnonzero(active))
+            if key in seen:
+                continue
+            seen.add(key)
             coef = problem.solve(active)
+            r = y - theta @ coef
+            by_size.setdefault(int(active.sum()), []).append((float(r @ r), k, coef))
+        sizes = [size for size in sorted(by_size) if size <= self.settings.max_terms + 1]  # + the constant
+        kept = [e for size in sizes for e in sorted(by_size[size], key=lambda e: e[:2])[:_KEEP]]
+        out: list[Candidate] = []
+        for _, k, coef in kept:
+            active = sets[k]
             if loss == "absolute" and np.count_nonzero(active) <= self.sparse.irls_max_terms:
                 coef = problem.l1_refit(active, coef, self.sparse.irls_iterations)
             idx = np.flatnonzero(coef)
@@ -310,6 +335,29 @@ class DiscoveryEngine:
 
 
 _SELECTION = SelectionSettings()  # the residual's model: the same held-out pick as identify's
+_KEEP = 3  # candidates kept per model size (number of terms): the best by training residual
+
+
+class _Basis:
+    """An orthonormal basis of the pool's columns (and the constant), to keep only independent features."""
+
+    def __init__(self, n: int, tol: float = 1e-8):
+        self.q = np.full((n, 1), 1.0 / np.sqrt(n))
+        self.tol = tol
+
+    def add(self, col: np.ndarray) -> bool:
+        """Add col if it is not (numerically) a combination of the basis; True when added."""
+        norm = float(np.linalg.norm(col))
+        if not np.isfinite(norm) or norm == 0.0:
+            return False
+        v = col / norm
+        for _ in range(2):  # twice: classical Gram-Schmidt loses orthogonality once
+            v = v - self.q @ (self.q.T @ v)
+        rest = float(np.linalg.norm(v))
+        if rest <= self.tol:
+            return False
+        self.q = np.hstack([self.q, (v / rest)[:, None]])
+        return True
 
 
 def _screen_scores(F: np.ndarray, r: np.ndarray) -> np.ndarray:

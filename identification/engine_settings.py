@@ -69,7 +69,7 @@ class DiscoverySettings:
     """
 
     primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
-    operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos")
+    operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
     screen: int = 40  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3

@@ -2,9 +2,12 @@
 
 Each primitive carries a unit as exponents of (m, s) (identification.body_frame). Operators:
 - rung 1 (unary, on one primitive): x ("id"), x^2 ("pow"), |x| ("abs", where x takes both signs),
-  1/x and 1/x^2 ("inv", where x > 0 throughout), sin x and cos x ("sincos", only for a dimensionless x),
+  1/x and 1/x^2 ("inv", for a quantity physically bounded away from zero, the height, and > 0 in the data),
+  sin x and cos x ("sincos", only for a dimensionless x),
   the norm sqrt(sum x_i^2) of a vector group ("norm", only when every member has the same unit: adding unlike
-  units is invalid)
+  units is invalid); the signed sums sum_i s_i x_i and sum_i s_i x_i^2 (s_i = +-1) over a group of like
+  scalars with like units ("add": the rotors' f1..f4 and momentum-like combinations; built first, so
+  that where a pool is reduced to independent columns a combination stands for its members)
 - rung 2: products of two rung-1 features ("mul"; quotients are products with the "inv" features)
 - rung 3: products of a beam of the best rung-2 features with the rung-1 features
 Invalid combinations (sin of a length, a sum of a velocity and a rate) are never built and are counted in
@@ -15,6 +18,7 @@ space evaluates on any data (training, held-out, validation).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -23,7 +27,7 @@ import sympy
 
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, Unit
 
-OPERATORS: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos")
+OPERATORS: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
 
 
 def combine_units(op: str, *units: Unit) -> Unit | None:
@@ -48,8 +52,9 @@ def power_unit(unit: Unit, p: int) -> Unit:
 class Recipe:
     """How a feature's column is computed: op over primitive columns (unary) or parent features (mul)."""
 
-    op: str  # id, pow2, abs, inv1, inv2, sin, cos, norm, mul
-    args: tuple[int, ...]  # primitive indices (unary, norm) or feature indices (mul)
+    op: str  # id, pow2, abs, inv1, inv2, sin, cos, norm, sum1, sum2, mul
+    args: tuple[int, ...]  # primitive indices (unary, norm, sums) or feature indices (mul)
+    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument
 
 
 @dataclass
@@ -112,6 +117,9 @@ class FeatureSpace:
                         v = np.cos(x)
                     elif r.op == "norm":
                         v = np.sqrt(np.sum(P[:, list(r.args)] ** 2, axis=1))
+                    elif r.op in ("sum1", "sum2"):
+                        power = 1 if r.op == "sum1" else 2
+                        v = P[:, list(r.args)] ** power @ np.asarray(r.signs, float)
                     else:
                         raise ValueError(r.op)
             cache[i] = v
@@ -130,6 +138,23 @@ def grow_unary(primitives: Sequence[str], operators: Sequence[str], P: np.ndarra
         raise ValueError(f"unknown operators {unknown} (known: {', '.join(OPERATORS)})")
     space = FeatureSpace(tuple(primitives))
     sym = [PRIMITIVE_SYMBOLS[n] for n in primitives]
+    groups: dict[str, list[int]] = {}
+    for k, name in enumerate(primitives):
+        groups.setdefault(PRIMITIVES[name].group, []).append(k)
+    if "add" in operators:
+        for members in groups.values():
+            if len(members) < 2 or not all(PRIMITIVES[primitives[k]].summable for k in members):
+                continue
+            u = combine_units("add", *[PRIMITIVES[primitives[k]].unit for k in members])
+            if u is None:
+                space._prune("sum of unlike units")
+                continue
+            patterns = [(1, *rest) for rest in itertools.product((1, -1), repeat=len(members) - 1)]
+            patterns.sort(key=lambda s_: (min(s_) < 0, abs(sum(s_))))  # the sum, then the balanced ones
+            for power, op in ((2, "sum2"), (1, "sum1")):
+                for signs in patterns:
+                    expr = sympy.Add(*[s_ * sym[k] ** power for s_, k in zip(signs, members, strict=True)])
+                    space._add(expr, power_unit(u, power), 1, Recipe(op, tuple(members), signs))
     for k, name in enumerate(primitives):
         x, unit, s = P[:, k], PRIMITIVES[name].unit, sym[k]
         space._add(s, unit, 1, Recipe("id", (k,)))
@@ -137,7 +162,7 @@ def grow_unary(primitives: Sequence[str], operators: Sequence[str], P: np.ndarra
             space._add(s**2, power_unit(unit, 2), 1, Recipe("pow2", (k,)))
         if "abs" in operators and np.any(x < 0) and np.any(x > 0):
             space._add(sympy.Abs(s), unit, 1, Recipe("abs", (k,)))
-        if "inv" in operators and np.all(x > 0):
+        if "inv" in operators and PRIMITIVES[name].positive and np.all(x > 0):
             space._add(1 / s, power_unit(unit, -1), 1, Recipe("inv1", (k,)))
             space._add(1 / s**2, power_unit(unit, -2), 1, Recipe("inv2", (k,)))
         if "sincos" in operators:
@@ -147,19 +172,15 @@ def grow_unary(primitives: Sequence[str], operators: Sequence[str], P: np.ndarra
                     space._prune(f"{op} of a dimensional argument")
                     continue
                 space._add(fn(s), u, 1, Recipe(op, (k,)))
-    if "norm" in operators:
-        groups: dict[str, list[int]] = {}
-        for k, name in enumerate(primitives):
-            groups.setdefault(PRIMITIVES[name].group, []).append(k)
-        for members in groups.values():
-            if len(members) < 2:
-                continue
-            u = combine_units("norm", *[PRIMITIVES[primitives[k]].unit for k in members])
-            if u is None:
-                space._prune("norm of unlike units")
-                continue
-            expr = sympy.sqrt(sympy.Add(*[sym[k] ** 2 for k in members]))
-            space._add(expr, u, 1, Recipe("norm", tuple(members)))
+    for members in groups.values():
+        if len(members) < 2 or "norm" not in operators:
+            continue
+        u = combine_units("norm", *[PRIMITIVES[primitives[k]].unit for k in members])
+        if u is None:
+            space._prune("norm of unlike units")
+            continue
+        expr = sympy.sqrt(sympy.Add(*[sym[k] ** 2 for k in members]))
+        space._add(expr, u, 1, Recipe("norm", tuple(members)))
     return space
 
 
