@@ -303,6 +303,7 @@ class DiscoveryEngine:
             warnings.simplefilter("ignore")
             reg.fit(inputs, residual)
         self.stats["operon_generations"] = int(reg.stats_.get("generations", s.operon_generations))
+        self.stats["operon_front"] = len(reg.pareto_front_)
         out: list[Candidate] = []
         seen: set[str] = set()
         for point in reg.pareto_front_:

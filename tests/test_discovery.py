@@ -102,7 +102,7 @@ def test_genetic_programming_always_runs_and_the_same_seed_gives_the_same_model(
         best, engine, cands, _ = _fit(Effects(rotor_drag=2e-4), "fx", seed=3, n=800, settings=settings)
         assert "operon" in engine.timings  # no threshold gates it off, even on an exact sparse fit
         assert engine.stats["operon_generations"] == 4
-        assert any(c.engine == "discovery(+operon)" for c in cands)
+        assert engine.stats["operon_front"] >= 1  # (here the residual is ~0: its front adds nothing new)
         runs.append([str(c.expression) for c in cands] + [str(best.expression)])
     assert runs[0] == runs[1]
 
