@@ -19,9 +19,11 @@ Budgets are counts, not seconds (the time budget is ignored), so the same seed g
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import time
 import warnings
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import sympy
@@ -103,7 +105,8 @@ class DiscoveryEngine:
         check_settings(self.settings)
         # no simpler-term swaps: over a grown pool they multiply the candidates for little gain
         self.sparse = dataclasses.replace(
-            sparse or SparseSettings(), forward_terms=self.settings.max_terms, swap_max_terms=0
+            sparse or SparseSettings(), forward_terms=self.settings.max_terms, swap_max_terms=0,
+            thresholds=min((sparse or SparseSettings()).thresholds, self.settings.thresholds),
         )
         self.name = name
         self.timings: dict[str, float] = {}
@@ -155,15 +158,25 @@ class DiscoveryEngine:
     ) -> list[Candidate]:
         s = self.settings
         start = time.perf_counter()
-        space = self.build_space(X)
+        key = (s, hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest())
+        if s.rungs < 3 and _LAST_SPACE.get("key") == key:  # the six targets of one flight share it
+            space, F, Z = _LAST_SPACE["space"], _LAST_SPACE["F"], _LAST_SPACE["Z"]
+        else:
+            space = self.build_space(X)
+            F = _Columns(space)(X, np.arange(len(space)))
+            Z = _standardized(F)
+            _LAST_SPACE.clear()
+            if s.rungs < 3:  # rung 3 grows the space per target: not shared
+                _LAST_SPACE.update(key=key, space=space, F=F, Z=Z)
         columns = _Columns(space)
-        F = columns(X, np.arange(len(space)))
         if s.rungs >= 3 and "mul" in s.operators:
-            scores = _screen_scores(F, y)
+            scores = _screen_scores(Z, y)
             rung2 = [i for i in np.argsort(-scores, kind="stable") if space.rungs[i] == 2][: s.beam]
             unary = [i for i in range(len(space)) if space.rungs[i] == 1]
             added = grow_products(space, rung2, unary, 3)
-            F = np.hstack([F, columns(X, np.asarray(added, int))]) if added else F
+            if added:
+                F = np.hstack([F, columns(X, np.asarray(added, int))])
+                Z = _standardized(F)
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
         scale = float(np.std(yh)) if len(yh) else 1.0
@@ -176,7 +189,7 @@ class DiscoveryEngine:
         residual = y.copy()
         best: Candidate | None = None
         for rnd in range(max(s.rounds, 1)):
-            scores = _screen_scores(F, residual)
+            scores = _screen_scores(Z, residual)
             scores[pool] = -np.inf
             new: list[int] = []
             for i in np.argsort(-scores, kind="stable"):
@@ -226,7 +239,10 @@ class DiscoveryEngine:
         nodes = [complexity(e) for e in exprs]
         sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes)
         by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
+        limit = self.settings.max_terms + 1  # + the constant
         for k, active in enumerate(sets):
+            if active.sum() > limit:  # larger models are never kept: not solved either
+                continue
             key = frozenset(int(pool[j - 1]) if j > 0 else -1 for j in np.flatnonzero(active))
             if key in seen:
                 continue
@@ -234,8 +250,7 @@ class DiscoveryEngine:
             coef = problem.solve(active)
             r = y - theta @ coef
             by_size.setdefault(int(active.sum()), []).append((float(r @ r), k, coef))
-        sizes = [size for size in sorted(by_size) if size <= self.settings.max_terms + 1]  # + the constant
-        kept = [e for size in sizes for e in sorted(by_size[size], key=lambda e: e[:2])[:_KEEP]]
+        kept = [e for size in sorted(by_size) for e in sorted(by_size[size], key=lambda e: e[:2])[:_KEEP]]
         out: list[Candidate] = []
         for _, k, coef in kept:
             active = sets[k]
@@ -335,6 +350,7 @@ class DiscoveryEngine:
         return out
 
 
+_LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
 _SELECTION = SelectionSettings()  # the residual's model: the same held-out pick as identify's
 _KEEP = 3  # candidates kept per model size (number of terms): the best by training residual
 
@@ -361,17 +377,23 @@ class _Basis:
         return True
 
 
-def _screen_scores(F: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """|correlation| of each column of F with r (sure independence screening); -inf for unusable columns."""
+def _standardized(F: np.ndarray) -> np.ndarray:
+    """Columns centred and scaled to unit RMS; unusable columns (constant, not finite) all NaN."""
     with np.errstate(all="ignore"):
         fc = F - F.mean(axis=0)
         std = np.sqrt(np.mean(fc * fc, axis=0))
-        rc = r - r.mean()
-        rs = float(np.sqrt(np.mean(rc * rc)))
-        scores = np.abs(fc.T @ rc) / (len(r) * std * (rs if rs > 0 else 1.0))
-    ok = np.isfinite(scores) & (std > 1e-12 * np.maximum(np.abs(F).max(axis=0), 1e-300))
-    ok &= np.all(np.isfinite(F), axis=0)
-    return np.where(ok, scores, -np.inf)
+        ok = (std > 1e-12 * np.maximum(np.abs(F).max(axis=0), 1e-300)) & np.all(np.isfinite(F), axis=0)
+        return np.where(ok, fc / np.where(ok, std, 1.0), np.nan)
+
+
+def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """|correlation| of each standardized column of Z with r (sure independence screening); -inf where
+    a column is unusable."""
+    rc = r - r.mean()
+    rs = float(np.sqrt(np.mean(rc * rc)))
+    with np.errstate(all="ignore"):
+        scores = np.abs(np.nan_to_num(Z.T @ rc, nan=np.nan)) / (len(r) * (rs if rs > 0 else 1.0))
+    return np.where(np.isfinite(scores), scores, -np.inf)
 
 
 def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:

@@ -74,7 +74,8 @@ class DiscoverySettings:
     screen: int = 40  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3
     rounds: int = 3  # screen -> sparsify -> residual rounds
-    max_terms: int = 20  # forward-selection path length in the sparsifier
+    max_terms: int = 20  # forward-selection path length in the sparsifier; larger models are not kept
+    thresholds: int = 12  # points of the sparsifier's STLSQ threshold sweep (at most sparse.thresholds)
     operon_generations: int = 8  # genetic programming on the sparse model's residual: always run
     operon_population: int = 100
     operon_max_length: int = 15
