@@ -120,11 +120,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--settings",
         default=None,
         metavar="FILE.yaml",
-        help="engine settings (YAML, every key optional: sparse, operon, pysr, selection, gate_r2; see "
-        "identification.engine)",
+        help="engine settings (YAML, every key optional: sparse, operon, pysr, selection, discovery; see "
+        "identification.engine_settings)",
     )
     p.add_argument(
-        "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file"
+        "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file "
+        "(its gravity is used for body-frame learning)"
     )
     _add_row_options(p)
     p.add_argument(
@@ -248,8 +249,9 @@ def run_identify(args: argparse.Namespace) -> int:
     """Identify the model and write it (or, with --fleet, one model per log and the fleet tables)."""
     if args.fleet:
         return run_fleet(args)
+    from identification.body_frame import STANDARD_GRAVITY
     from identification.data_roles import DEFAULT_GAP_S, assign_roles
-    from identification.engine import load_engine_settings
+    from identification.engine_settings import load_engine_settings
     from identification.identify import identify, parse_targets
     from identification.model_file import save_model
     from identification.validate import table_markdown
@@ -277,12 +279,13 @@ def run_identify(args: argparse.Namespace) -> int:
 
         require_pysr(settings.pysr.probe_timeout_s)  # fail before reading the logs
     vehicle = vehicle_config = None
+    gravity = STANDARD_GRAVITY  # body-frame learning removes it; the vehicle's when given
     if args.vehicle:
         from bridge.vehicle import load_vehicle
         from identification.true_model import vehicle_provenance
 
         vehicle_config = load_vehicle(args.vehicle)
-        vehicle = vehicle_provenance(vehicle_config)
+        vehicle, gravity = vehicle_provenance(vehicle_config), vehicle_config.gravity
     dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
     pick = _load(args.pick_log, args.targets_from, args.motor_curve, args) if args.pick_log else None
     check = _load(args.validate_log, args.targets_from, args.motor_curve, args) if args.validate_log else None
@@ -323,6 +326,7 @@ def run_identify(args: argparse.Namespace) -> int:
         settings=settings,
         vehicle=vehicle,
         progress=not args.no_progress,
+        gravity=gravity,
     )
     if motor is not None:
         model.engine["motor_model"] = motor.as_dict()

@@ -17,6 +17,15 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from identification.body_frame import (
+    BODY_TARGET_NAMES,
+    STANDARD_GRAVITY,
+    body_fit_names,
+    body_targets,
+    composed_targets,
+    primitive_info,
+    to_variables,
+)
 from identification.collinearity import (
     CONFOUNDER_VIF_LIMIT,
     VIF_LIMIT,
@@ -29,7 +38,7 @@ from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
 from identification.library import build_library, feature_matrix
 from identification.metrics import LOSSES, table_metrics
-from identification.model_file import TARGET_NAMES, Model, TargetModel
+from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel
 from identification.pareto import attach_holdout, front_points, select
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
@@ -104,12 +113,15 @@ def identify(
     vehicle: dict[str, Any] | None = None,
     progress: bool = True,
     log: Callable[[str], None] | None = None,
+    gravity: float = STANDARD_GRAVITY,
 ) -> Model:
     """Identify the targets from a Dataset (identification.dataset); returns a learned Model.
 
     budget: genetic-programming generations per target (an iteration count, not seconds). pick / validate:
     whole flights for those roles, else time blocks of each flight (pick_fraction, validate_fraction) with
     gap_s (s) between blocks. r2_threshold: a target whose validation R^2 is below it is flagged.
+    An engine that learns in the body frame (frame "body", the default engine) fits fx fy fz dwx dwy dwz
+    (identification.body_frame, with `gravity` in m/s^2) and the NED targets are composed from them.
     """
     if engine not in ENGINE_NAMES:
         raise UserError(f"unknown engine {engine!r}", hint=f"choose one of {', '.join(ENGINE_NAMES)}")
@@ -133,6 +145,13 @@ def identify(
     X, Y = _rows(roles.fit)
     Xp, Yp = _rows(roles.pick)
     Xv, Yv = _rows(roles.validate)
+    body_frame = getattr(make_engine(engine, settings), "frame", "ned") == "body"
+    fit_names, Yf, Ypf, Yvf = tuple(targets), Y, Yp, Yv
+    if body_frame:
+        fit_names = body_fit_names(targets)
+        Yf = body_targets(roles.fit.xi, Y, gravity)
+        Ypf = body_targets(roles.pick.xi, Yp, gravity)
+        Yvf = body_targets(roles.validate.xi, Yv, gravity)
     targets_done: dict[str, TargetModel] = {}
     wall: dict[str, dict[str, float]] = {}
     gates: dict[str, float] = {}
@@ -143,9 +162,9 @@ def identify(
     library = build_library(settings.sparse.groups)
     library_names = [f.name for f in library]
     library_columns = feature_matrix(library, X)
-    for name in targets:
-        j = TARGET_NAMES.index(name)
-        y, yp, yv = Y[:, j], Yp[:, j], Yv[:, j]
+    for name in fit_names:
+        j = (BODY_TARGET_NAMES if body_frame else TARGET_NAMES).index(name)
+        y, yp, yv = Yf[:, j], Ypf[:, j], Yvf[:, j]
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
         okp = np.all(np.isfinite(Xp), axis=1) & np.isfinite(yp)
         okv = np.all(np.isfinite(Xv), axis=1) & np.isfinite(yv)
@@ -173,7 +192,10 @@ def identify(
         wall[name] = timings
         if getattr(eng, "gate_r2", None) is not None:
             gates[name] = float(eng.gate_r2)
-        coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
+        if body_frame:  # the terms as functions of the 16 variables; confounders among the grown features
+            coll = model_collinearity(to_variables(chosen.expression), X[ok])  # are the engine's to report
+        else:
+            coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         identifiability[name] = coll.as_dict()
         warnings += describe(name, coll)
         targets_done[name] = TargetModel(
@@ -185,7 +207,7 @@ def identify(
             wall_time_s=elapsed,
         )
         r2v = metrics["validation"]["r2"]
-        if not r2v >= r2_threshold:
+        if not body_frame and not r2v >= r2_threshold:  # body-frame: checked on the composed targets
             below[name] = float(r2v)
             warnings.append(
                 f"warning: {name}: validation R^2 {r2v:.6f} is below the threshold {r2_threshold:g}"
@@ -193,6 +215,19 @@ def identify(
         bar.close(f"R2={r2v:.6f} complexity {chosen.complexity} ({chosen.engine})")
         if log:
             log(f"{name}: R2 {r2v:.6f}, complexity {chosen.complexity}, {chosen.engine}, {elapsed:.1f} s")
+    body = None
+    if body_frame:
+        body = BodyModel(targets_done, primitive_info(), gravity)
+        targets_done = composed_targets(
+            body, targets, {"train": (X, Y), "pick": (Xp, Yp), "validation": (Xv, Yv)}
+        )
+        for name, t in targets_done.items():  # the threshold is on the composed targets, as reported
+            r2v = t.metrics["validation"]["r2"]
+            if not r2v >= r2_threshold:
+                below[name] = float(r2v)
+                warnings.append(
+                    f"warning: {name}: validation R^2 {r2v:.6f} is below the threshold {r2_threshold:g}"
+                )
     cand = column_collinearity(library_columns, library_names)
     if cand.unidentifiable:
         worst = ", ".join(f"{t.term} ~ {t.partner}" for t in cand.unidentifiable[:3])
@@ -229,6 +264,8 @@ def identify(
     }
     if gates:
         engine_info["sparse_pick_r2"] = gates
+    if body_frame:
+        engine_info["learned_in"] = "body frame FRD: fx fy fz dwx dwy dwz; ax ay az = R f_b + g e_z"
     extra = {
         "data": roles.as_dict(),
         "checks": {
@@ -250,5 +287,6 @@ def identify(
     for line in warnings:
         print(line, file=sys.stderr)
     return Model(
-        targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info, extra=extra
+        targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info, extra=extra,
+        body=body,
     )

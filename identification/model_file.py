@@ -24,7 +24,8 @@ from sympy.printing.str import StrPrinter
 from bridge.errors import UserError
 from bridge.yaml_file import load_yaml_file
 
-FORMAT = "quadsr-model/1"
+FORMAT = "quadsr-model/2"  # written; /2 adds the learned body-frame expressions (section `body`)
+FORMATS_READ: tuple[str, ...] = ("quadsr-model/1", "quadsr-model/2")
 KINDS = ("learned", "true-model")
 
 STATE_NAMES: tuple[str, ...] = ("x", "y", "z", "vx", "vy", "vz", "phi", "theta", "psi", "wx", "wy", "wz")
@@ -59,6 +60,13 @@ TARGET_INFO: dict[str, dict[str, str]] = {
     "dwx": {"description": "wx' (body roll acceleration)", "unit": "rad/s^2", "frame": "FRD"},
     "dwy": {"description": "wy' (body pitch acceleration)", "unit": "rad/s^2", "frame": "FRD"},
     "dwz": {"description": "wz' (body yaw acceleration)", "unit": "rad/s^2", "frame": "FRD"},
+}
+
+BODY_TARGET_INFO: dict[str, dict[str, str]] = {
+    "fx": {"description": "specific force forward, (R^T (a - g e_z))_x", "unit": "m/s^2", "frame": "FRD"},
+    "fy": {"description": "specific force right, (R^T (a - g e_z))_y", "unit": "m/s^2", "frame": "FRD"},
+    "fz": {"description": "specific force down, (R^T (a - g e_z))_z", "unit": "m/s^2", "frame": "FRD"},
+    **{n: TARGET_INFO[n] for n in ("dwx", "dwy", "dwz")},
 }
 
 # real=True lets sympy simplify Abs, sqrt etc.; other packages must use these symbols (Model.symbols).
@@ -209,17 +217,37 @@ class TargetModel:
     @property
     def description(self) -> str:
         """What the target is (for tables and plots)."""
-        return TARGET_INFO[self.name]["description"]
+        return _info(self.name)["description"]
 
     @property
     def unit(self) -> str:
         """The target's SI unit."""
-        return TARGET_INFO[self.name]["unit"]
+        return _info(self.name)["unit"]
 
     @property
     def frame(self) -> str:
-        """The target's frame: NED for linear, FRD for angular accelerations."""
-        return TARGET_INFO[self.name]["frame"]
+        """The target's frame: NED for linear, FRD for angular accelerations and body-frame targets."""
+        return _info(self.name)["frame"]
+
+
+def _info(name: str) -> dict[str, str]:
+    return TARGET_INFO[name] if name in TARGET_INFO else BODY_TARGET_INFO[name]
+
+
+@dataclass
+class BodyModel:
+    """What a body-frame learner found: fx fy fz dwx dwy dwz in primitive names, and those primitives.
+
+    The six NED/FRD targets of the Model are composed from it exactly (a = R f_b + g e_z).
+    """
+
+    targets: dict[str, TargetModel]
+    primitives: dict[str, dict[str, Any]]  # name -> {expression (16 variables), unit, frame, description}
+    gravity: float  # m/s^2, along +z (down) in NED
+
+    def symbols(self) -> dict[str, sympy.Symbol]:
+        """Primitive name -> Symbol (the state and input symbols where the name is one of the 16)."""
+        return {n: SYMBOLS[n] if n in SYMBOLS else sympy.Symbol(n, real=True) for n in self.primitives}
 
 
 class Model:
@@ -238,6 +266,7 @@ class Model:
         created: str | None = None,
         source: str | None = None,
         extra: dict[str, Any] | None = None,
+        body: BodyModel | None = None,
     ):
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {KINDS}, not {kind!r}")
@@ -260,6 +289,7 @@ class Model:
         self.created = created or _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
         self.source = source
         self.extra = dict(extra or {})
+        self.body = body  # the learned body-frame expressions (format /2), None for NED-learned models
         self._scalar_fn: Callable[..., Any] | None = None
         self._vector_fns: dict[str, Callable[..., Any]] | None = None
 
@@ -383,29 +413,38 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _target_entry(t: TargetModel) -> dict[str, Any]:
+    entry: dict[str, Any] = dict(_info(t.name))
+    entry["expression"] = expression_to_string(t.expression)
+    entry["complexity"] = complexity(t.expression)
+    if t.engine is not None:
+        entry["engine"] = t.engine
+    if t.wall_time_s is not None:
+        entry["wall_time_s"] = round(float(t.wall_time_s), 3)
+    entry["pareto"] = []
+    for p in t.pareto:
+        point: dict[str, Any] = {"complexity": int(p.complexity), "loss": float(p.loss)}
+        if p.holdout_loss is not None:
+            point["holdout_loss"] = float(p.holdout_loss)
+        if p.engine is not None:
+            point["engine"] = p.engine
+        point["expression"] = p.expression
+        entry["pareto"].append(point)
+    if t.metrics:
+        entry["metrics"] = _plain(t.metrics)
+    return entry
+
+
 def model_to_dict(model: Model) -> dict[str, Any]:
     """The model as the YAML mapping of docs/design.md."""
-    targets: dict[str, Any] = {}
-    for name, t in model.targets.items():
-        entry: dict[str, Any] = dict(TARGET_INFO[name])
-        entry["expression"] = expression_to_string(t.expression)
-        entry["complexity"] = complexity(t.expression)
-        if t.engine is not None:
-            entry["engine"] = t.engine
-        if t.wall_time_s is not None:
-            entry["wall_time_s"] = round(float(t.wall_time_s), 3)
-        entry["pareto"] = []
-        for p in t.pareto:
-            point: dict[str, Any] = {"complexity": int(p.complexity), "loss": float(p.loss)}
-            if p.holdout_loss is not None:
-                point["holdout_loss"] = float(p.holdout_loss)
-            if p.engine is not None:
-                point["engine"] = p.engine
-            point["expression"] = p.expression
-            entry["pareto"].append(point)
-        if t.metrics:
-            entry["metrics"] = _plain(t.metrics)
-        targets[name] = entry
+    targets = {name: _target_entry(t) for name, t in model.targets.items()}
+    body: dict[str, Any] | None = None
+    if model.body is not None:
+        body = {
+            "gravity": float(model.body.gravity),
+            "primitives": _plain(model.body.primitives),
+            "targets": {name: _target_entry(t) for name, t in model.body.targets.items()},
+        }
     data: dict[str, Any] = {
         "format": FORMAT,
         "kind": model.kind,
@@ -417,8 +456,10 @@ def model_to_dict(model: Model) -> dict[str, Any]:
             "inputs": [dict(v) for v in INPUT_VARIABLES],
         },
         "targets": targets,
-        "engine": _plain(model.engine),
     }
+    if body is not None:
+        data["body"] = body
+    data["engine"] = _plain(model.engine)
     data.update(_plain(model.extra))
     return data
 
@@ -467,10 +508,13 @@ class _Reader:
             raise self.fail(key, f"expected an integer, got {value!r}")
         return int(value) if integer else float(value)
 
-    def expression(self, value: Any, key: str) -> sympy.Expr:
+    def expression(
+        self, value: Any, key: str, names: Mapping[str, sympy.Expr] | None = None
+    ) -> sympy.Expr:
         try:
-            expr = parse_expression(value)
-            check_expression(expr)
+            expr = parse_expression(value, names)
+            if names is None:
+                check_expression(expr)
         except ExpressionError as exc:
             raise self.fail(key, str(exc)) from None
         return expr
@@ -494,12 +538,14 @@ def _read_variables(r: _Reader, data: dict[str, Any]) -> None:
             )
 
 
-def _read_target(r: _Reader, name: str, raw: Any) -> TargetModel:
-    key = f"targets.{name}"
+def _read_target(
+    r: _Reader, name: str, raw: Any, prefix: str = "targets", names: Mapping[str, sympy.Expr] | None = None
+) -> TargetModel:
+    key = f"{prefix}.{name}"
     entry = r.mapping(raw, key)
     if "expression" not in entry:
         raise r.fail(f"{key}.expression", "missing")
-    expr = r.expression(entry["expression"], f"{key}.expression")
+    expr = r.expression(entry["expression"], f"{key}.expression", names)
     pareto: list[ParetoPoint] = []
     raw_front = entry.get("pareto", [])
     if raw_front is None:
@@ -512,7 +558,7 @@ def _read_target(r: _Reader, name: str, raw: Any) -> TargetModel:
         for needed in ("complexity", "loss", "expression"):
             if needed not in point:
                 raise r.fail(f"{pkey}.{needed}", "missing")
-        r.expression(point["expression"], f"{pkey}.expression")
+        r.expression(point["expression"], f"{pkey}.expression", names)
         pareto.append(
             ParetoPoint(
                 complexity=r.number(point["complexity"], f"{pkey}.complexity", integer=True),
@@ -554,8 +600,9 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     data = r.mapping(data, "(document)")
     if "format" not in data:
         raise r.fail("format", f"missing (expected {FORMAT!r})")
-    if data["format"] != FORMAT:
-        raise r.fail("format", f"unsupported {data['format']!r} (this quadsr reads {FORMAT!r})")
+    if data["format"] not in FORMATS_READ:
+        readable = ", ".join(FORMATS_READ)
+        raise r.fail("format", f"unsupported {data['format']!r} (this quadsr reads {readable})")
     kind = data.get("kind", "learned")
     if kind not in KINDS:
         raise r.fail("kind", f"{kind!r} is not one of {list(KINDS)}")
@@ -580,7 +627,8 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     engine = data.get("engine") or {}
     engine = r.mapping(engine, "engine")
     created = data.get("created")
-    known = {"format", "kind", "created", "vehicle", "flights", "variables", "targets", "engine"}
+    body = _read_body(r, data["body"]) if data.get("body") is not None else None
+    known = {"format", "kind", "created", "vehicle", "flights", "variables", "targets", "engine", "body"}
     extra = {k: v for k, v in data.items() if k not in known}
     return Model(
         targets,
@@ -591,4 +639,28 @@ def load_model(path: str | os.PathLike[str]) -> Model:
         created=str(created) if created is not None else None,
         source=str(p),
         extra=extra,
+        body=body,
     )
+
+
+def _read_body(r: _Reader, raw: Any) -> BodyModel:
+    """The `body` section (format /2): gravity, primitive definitions, body-frame targets in their names."""
+    body = r.mapping(raw, "body")
+    gravity = r.number(body.get("gravity"), "body.gravity")
+    prims_raw = r.mapping(body.get("primitives"), "body.primitives")
+    primitives: dict[str, dict[str, Any]] = {}
+    for name, info in prims_raw.items():
+        info = r.mapping(info, f"body.primitives.{name}")
+        if not str(name).isidentifier():
+            raise r.fail(f"body.primitives.{name}", "not a name")
+        r.expression(info.get("expression"), f"body.primitives.{name}.expression")
+        primitives[str(name)] = dict(info)
+    model = BodyModel({}, primitives, gravity)
+    names = {**SYMBOLS, **model.symbols()}
+    raw_targets = r.mapping(body.get("targets"), "body.targets")
+    for name, entry in raw_targets.items():
+        if name not in BODY_TARGET_INFO:
+            known = ", ".join(BODY_TARGET_INFO)
+            raise r.fail(f"body.targets.{name}", f"unknown body target (known: {known})")
+        model.targets[name] = _read_target(r, name, entry, "body.targets", names)
+    return model

@@ -14,7 +14,8 @@ import warnings
 import numpy as np
 
 from bridge.errors import UserError
-from identification.engine import Candidate, OperonSettings, Progress, make_candidate
+from identification.candidate import Candidate, Progress, make_candidate
+from identification.engine_settings import OperonSettings
 from identification.library import input_matrix
 from identification.metrics import LOSSES
 from identification.model_file import SYMBOLS, ExpressionError, parse_expression

@@ -15,7 +15,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from identification.engine import Candidate, SelectionSettings
+from identification.candidate import Candidate
+from identification.engine_settings import SelectionSettings
 from identification.metrics import loss as loss_fn
 from identification.model_file import ParetoPoint, expression_to_string
 

@@ -18,7 +18,8 @@ import numpy as np
 
 from bridge.errors import UserError
 from bridge.shutdown import die_with_parent
-from identification.engine import Candidate, Progress, PysrSettings, make_candidate
+from identification.candidate import Candidate, Progress, make_candidate
+from identification.engine_settings import PysrSettings
 from identification.library import input_matrix
 from identification.metrics import LOSSES
 from identification.model_file import SYMBOLS, ExpressionError, parse_expression

@@ -17,14 +17,15 @@ import numpy as np
 import scipy.linalg
 import sympy
 
-from identification.engine import Candidate, Progress, SparseSettings
+from identification.candidate import Candidate, Progress
+from identification.engine_settings import SparseSettings
 from identification.library import Feature, build_library, compile_features
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
 from identification.model_file import complexity
 
 
-class _Problem:
+class LeastSquaresProblem:
     """The scaled least-squares problem of one target, reduced once by QR.
 
     With S = QR (N x p), min ||S_A x - y|| over a column subset A equals min ||R_A x - Q^T y||: every subset
@@ -179,7 +180,9 @@ def _weighted_solve(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)[0]
 
 
-def stlsq(problem: _Problem, threshold: float, active: np.ndarray, max_iterations: int) -> np.ndarray:
+def stlsq(
+    problem: LeastSquaresProblem, threshold: float, active: np.ndarray, max_iterations: int
+) -> np.ndarray:
     """STLSQ from `active` at one contribution threshold -> the final active set."""
     active = active.copy()
     for _ in range(max_iterations):
@@ -191,7 +194,7 @@ def stlsq(problem: _Problem, threshold: float, active: np.ndarray, max_iteration
     return active
 
 
-def backward_path(problem: _Problem, active: np.ndarray) -> list[np.ndarray]:
+def backward_path(problem: LeastSquaresProblem, active: np.ndarray) -> list[np.ndarray]:
     """Active sets from `active` down to one term, each time dropping the term whose removal raises the
     residual sum of squares least (of two near-collinear terms one goes early, not both kept large)."""
     out = []
@@ -207,7 +210,7 @@ def backward_path(problem: _Problem, active: np.ndarray) -> list[np.ndarray]:
 
 
 def forward_path(
-    problem: _Problem, usable: np.ndarray, max_terms: int, prune: float = 1e-3
+    problem: LeastSquaresProblem, usable: np.ndarray, max_terms: int, prune: float = 1e-3
 ) -> list[np.ndarray]:
     """Forward selection with pruning: add the term that lowers the residual most, then drop every earlier
     term whose removal raises the residual sum of squares by less than `prune` of it (a term made redundant
@@ -256,7 +259,7 @@ def simpler_swaps(
 
 
 def sparse_active_sets(
-    problem: _Problem,
+    problem: LeastSquaresProblem,
     settings: SparseSettings,
     progress: Progress | None = None,
     groups: Sequence[str] | None = None,
@@ -300,7 +303,7 @@ def sparse_expression(features: Sequence[Feature], coef: np.ndarray) -> sympy.Ex
 
 
 @contextlib.contextmanager
-def _single_threaded_blas() -> Iterator[None]:
+def single_threaded_blas() -> Iterator[None]:
     """Small problems: BLAS threads only contend (measured 3-10x slower on 2 busy cores)."""
     try:
         from threadpoolctl import threadpool_limits
@@ -366,7 +369,7 @@ class SparseEngine:
         start = time.perf_counter()
         X = np.asarray(X, dtype=float)
         y = np.asarray(y, dtype=float)
-        with _single_threaded_blas():
+        with single_threaded_blas():
             return self._fit(X, y, loss, progress, start)
 
     def _fit(
@@ -378,7 +381,7 @@ class SparseEngine:
         start: float,
     ) -> list[Candidate]:
         theta = self.matrix(X)
-        problem = _Problem(theta, y)
+        problem = LeastSquaresProblem(theta, y)
         sets = sparse_active_sets(
             problem, self.settings, progress, [f.group for f in self.features], self._nodes
         )

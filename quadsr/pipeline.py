@@ -259,7 +259,8 @@ class PaperPipeline:
         # fit and pick on paper-train (time blocks), validate on the other flight (never seen by either)
         val = load_dataset(r.files["tlog_paper-validate"])
         r.model = identify(train, engine="default", budget=r.settings.budget, seed=r.seed, validate=val,
-                           vehicle=vehicle_provenance(r.vehicle), progress=r.progress)
+                           vehicle=vehicle_provenance(r.vehicle), progress=r.progress,
+                           gravity=r.vehicle.gravity)
         r.files["model"] = save_model(r.model, r.out / "model.yaml")
         return f"{len(train)} rows; wrote {r.files['model']}"
 

@@ -6,10 +6,8 @@ import numpy as np
 
 from identification.engine import (
     Candidate,
-    DefaultEngine,
     EngineSettings,
     OperonSettings,
-    SparseSettings,
     split_holdout,
 )
 from identification.metrics import loss, r2
@@ -49,23 +47,3 @@ def test_operon_finds_the_roll_torque_term_beats_a_constant_and_repeats():
     for c in pareto_front(cands):  # every front member is a formula in the 16 variable names, read back
         again = Candidate(parse_expression(expression_to_string(c.expression)), 0, 0.0)
         np.testing.assert_allclose(again.evaluate(Xh), c.evaluate(Xh), rtol=1e-9, atol=1e-9)
-
-
-def test_default_engine_calls_operon_only_where_the_library_falls_short():
-    X, y = _dwx(1200, seed=22)
-    extra = 20.0 * np.sin(X[:, 6]) * np.cos(X[:, 6])  # sin(phi)cos(phi): no library term
-    Xt, yt, Xh, yh = split_holdout(X, y + extra)
-    settings = EngineSettings(sparse=SparseSettings(thresholds=15), operon=SMALL)
-    engine = DefaultEngine(settings)
-    cands = engine.fit(Xt, yt, "dwx", 12, 1, "absolute", holdout=(Xh, yh))
-    assert engine.gate_r2 < settings.gate_r2 and "operon" in engine.timings
-    attach_holdout(cands, Xh, yh, "absolute")
-    best = select(cands, settings.selection, float(np.std(yh)))
-    assert best.engine == "default(sparse+operon)"
-    assert r2(yh, best.evaluate(Xh)) > engine.gate_r2
-
-    # on a target the library explains, no genetic programming runs
-    Xt, yt, Xh, yh = split_holdout(X, y)
-    engine = DefaultEngine(settings)
-    cands = engine.fit(Xt, yt, "dwx", 12, 1, "absolute", holdout=(Xh, yh))
-    assert "operon" not in engine.timings and all(c.engine == "sparse" for c in cands)

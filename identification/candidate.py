@@ -1,0 +1,77 @@
+"""The engine interface's types: Candidate (one model of one target), the Progress callback, Engine.
+
+Every engine fits one target: `fit(X (N,16) = xi then u, y (N,), target, budget, seed, loss, progress,
+holdout) -> list[Candidate]`. A candidate's expression is in the 16 variable names, or, for an engine that
+learns in the body frame (`frame = "body"`), in the body-frame primitive names of identification.body_frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import sympy
+
+from identification.metrics import loss
+from identification.model_file import SYMBOLS, VARIABLE_NAMES, complexity
+
+Progress = Callable[[float, str], None]  # (fraction done in [0, 1], short status)
+
+
+@dataclass
+class Candidate:
+    """One model of one target: expression in the 16 variables, its size and its training loss."""
+
+    expression: sympy.Expr
+    complexity: int
+    train_loss: float
+    engine: str = ""
+    holdout_loss: float | None = None
+    predict: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    def evaluate(self, X: np.ndarray) -> np.ndarray:
+        """The candidate's prediction on X (N,16), in the target's unit."""
+        if self.predict is None:
+            fn = sympy.lambdify([SYMBOLS[n] for n in VARIABLE_NAMES], self.expression, modules="numpy")
+            self.predict = lambda X_, fn=fn: np.broadcast_to(
+                np.asarray(fn(*[X_[:, i] for i in range(16)]), float), (X_.shape[0],)
+            )
+        with np.errstate(all="ignore"):
+            return np.asarray(self.predict(np.asarray(X, float)), float)
+
+
+def make_candidate(
+    expression: sympy.Expr,
+    X: np.ndarray,
+    y: np.ndarray,
+    loss_kind: str,
+    engine: str,
+    predict: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> Candidate:
+    """A Candidate with its complexity and training loss computed."""
+    c = Candidate(expression, complexity(expression), float("nan"), engine, predict=predict)
+    c.train_loss = loss(y, c.evaluate(X), loss_kind)
+    return c
+
+
+class Engine(Protocol):
+    """A symbolic-regression engine behind the common interface."""
+
+    name: str
+    timings: dict[str, float]
+
+    def fit(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        target: str,
+        budget: int,
+        seed: int,
+        loss: str = "absolute",
+        progress: Progress | None = None,
+        holdout: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> list[Candidate]:
+        """Fit one target within `budget` generations/iterations; return candidates."""
+        ...

@@ -1,0 +1,422 @@
+"""The discovery engine: finds body-frame physics its library does not hold, from primitives.
+
+In the spirit of SISSO (Ouyang et al. 2018), per target:
+1. grow candidate features from the body-frame primitives by operators, in rungs, with dimensional analysis
+   pruning invalid combinations (identification.feature_space);
+2. sure independence screening: rank every feature by |correlation| with the current residual and add the
+   best `screen` to the pool;
+3. sparsify the pool (STLSQ threshold sweep, backward elimination and forward selection, as the sparse
+   engine: identification.sparse); every active set is a candidate; the held-out pick gives the residual;
+4. repeat 2-3 on the residual for `rounds` rounds (small effects surface once the large ones are fitted);
+5. genetic programming (pyoperon), seeded with the primitives and the picked model's features, fits the
+   picked model's residual for a fixed number of generations (always: no threshold gates it); each front
+   member added to the sparse model is one more candidate.
+The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
+dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
+Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import time
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import sympy
+
+from bridge.errors import UserError
+from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
+from identification.candidate import Candidate, Progress
+from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
+from identification.feature_space import OPERATORS, FeatureSpace, grow_products, grow_unary
+from identification.library import Feature
+from identification.metrics import LOSSES
+from identification.metrics import loss as loss_fn
+from identification.model_file import ExpressionError, complexity, parse_expression
+from identification.pareto import attach_holdout, select
+from identification.sparse import (
+    LeastSquaresProblem,
+    single_threaded_blas,
+    sparse_active_sets,
+    sparse_expression,
+)
+
+# Decimal places of pyoperon's infix formatter (fixed-point): 25 keeps ~17 significant digits down to 1e-8.
+_PRECISION = 25
+
+
+def check_settings(settings: DiscoverySettings) -> None:
+    """UserError for an unknown primitive or operator name in the discovery settings."""
+    bad = [p for p in settings.primitives if p not in PRIMITIVES]
+    if bad:
+        raise UserError(
+            f"discovery settings: unknown primitive {bad[0]!r}", hint=f"known: {', '.join(PRIMITIVES)}"
+        )
+    bad = [o for o in settings.operators if o not in OPERATORS]
+    if bad:
+        raise UserError(
+            f"discovery settings: unknown operator {bad[0]!r}", hint=f"known: {', '.join(OPERATORS)}"
+        )
+    if not settings.primitives:
+        raise UserError("discovery settings: no primitives", hint=f"choose from {', '.join(PRIMITIVES)}")
+
+
+class _Columns:
+    """Feature values for any X (N,16), computed from the space's recipes, cached for the last arrays seen."""
+
+    def __init__(self, space: FeatureSpace):
+        self.space = space
+        self._cache: list[tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]] = []
+
+    def primitives(self, X: np.ndarray) -> np.ndarray:
+        """The primitive matrix of X (N, n_primitives)."""
+        return self._entry(X)[0]
+
+    def __call__(self, X: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        P, cache = self._entry(X)
+        return self.space.columns(P, indices, cache)
+
+    def _entry(self, X: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        for key, P, cache in self._cache:
+            if key is X:
+                return P, cache
+        P = primitive_matrix(X, self.space.primitives)
+        cache: dict[int, np.ndarray] = {}
+        self._cache = [(X, P, cache), *self._cache[:3]]
+        return P, cache
+
+
+class DiscoveryEngine:
+    """Features grown from body-frame primitives, screened, sparsified, then GP on the residual."""
+
+    frame = "body"
+
+    def __init__(
+        self,
+        settings: DiscoverySettings | None = None,
+        sparse: SparseSettings | None = None,
+        name: str = "discovery",
+    ):
+        self.settings = settings or DiscoverySettings()
+        check_settings(self.settings)
+        # no simpler-term swaps: over a grown pool they multiply the candidates for little gain
+        self.sparse = dataclasses.replace(
+            sparse or SparseSettings(), forward_terms=self.settings.max_terms, swap_max_terms=0,
+            thresholds=min((sparse or SparseSettings()).thresholds, self.settings.thresholds),
+        )
+        self.name = name
+        self.timings: dict[str, float] = {}
+        self.stats: dict[str, object] = {}
+
+    def build_space(self, X: np.ndarray) -> FeatureSpace:
+        """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
+        s = self.settings
+        P = primitive_matrix(X, s.primitives)
+        space = grow_unary(s.primitives, s.operators, P)
+        unary = list(range(len(space)))
+        if s.rungs >= 2 and "mul" in s.operators:
+            grow_products(space, unary, unary, 2)
+        return space
+
+    def fit(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        target: str,
+        budget: int,
+        seed: int,
+        loss: str = "absolute",
+        progress: Progress | None = None,
+        holdout: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> list[Candidate]:
+        """Candidates for one body-frame target (expressions in primitive names); budget: GP generations."""
+        if loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}")
+        X = np.asarray(X, dtype=float)
+        y = np.asarray(y, dtype=float)
+        if holdout is None:
+            cut = int(round(0.8 * len(y)))
+            X, Xh, y, yh = X[:cut], X[cut:], y[:cut], y[cut:]
+        else:
+            Xh, yh = np.asarray(holdout[0], float), np.asarray(holdout[1], float)
+        with single_threaded_blas():
+            return self._fit(X, y, Xh, yh, seed, loss, progress, int(budget))
+
+    def _fit(
+        self,
+        X: np.ndarray,
+        y: np.ndarray,
+        Xh: np.ndarray,
+        yh: np.ndarray,
+        seed: int,
+        loss: str,
+        progress: Progress | None,
+        budget: int,
+    ) -> list[Candidate]:
+        s = self.settings
+        start = time.perf_counter()
+        key = (s, hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest())
+        if s.rungs < 3 and _LAST_SPACE.get("key") == key:  # the six targets of one flight share it
+            space, F, Z = _LAST_SPACE["space"], _LAST_SPACE["F"], _LAST_SPACE["Z"]
+        else:
+            space = self.build_space(X)
+            F = _Columns(space)(X, np.arange(len(space)))
+            Z = _standardized(F)
+            _LAST_SPACE.clear()
+            if s.rungs < 3:  # rung 3 grows the space per target: not shared
+                _LAST_SPACE.update(key=key, space=space, F=F, Z=Z)
+        columns = _Columns(space)
+        if s.rungs >= 3 and "mul" in s.operators:
+            scores = _screen_scores(Z, y)
+            rung2 = [i for i in np.argsort(-scores, kind="stable") if space.rungs[i] == 2][: s.beam]
+            unary = [i for i in range(len(space)) if space.rungs[i] == 1]
+            added = grow_products(space, rung2, unary, 3)
+            if added:
+                F = np.hstack([F, columns(X, np.asarray(added, int))])
+                Z = _standardized(F)
+        self.timings = {"grow": time.perf_counter() - start}
+        self.stats = {"features": len(space), "pruned": dict(space.pruned)}
+        scale = float(np.std(yh)) if len(yh) else 1.0
+        basis = _Basis(len(y))
+        # rung 1 always in (combinations first: where a combination and its members are dependent, the
+        # combination stands for them); later features only where independent of the pool
+        pool: list[int] = [i for i in range(len(space)) if space.rungs[i] == 1 and basis.add(F[:, i])]
+        candidates: list[Candidate] = []
+        seen: set[frozenset[int]] = set()
+        residual = y.copy()
+        best: Candidate | None = None
+        for rnd in range(max(s.rounds, 1)):
+            scores = _screen_scores(Z, residual)
+            scores[pool] = -np.inf
+            new: list[int] = []
+            for i in np.argsort(-scores, kind="stable"):
+                if len(new) >= s.screen or not np.isfinite(scores[i]):
+                    break
+                if basis.add(F[:, i]):
+                    new.append(int(i))
+            if not new:
+                break
+            pool += new
+            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
+            attach_holdout(round_cands, Xh, yh, loss)
+            candidates += round_cands
+            best = select(candidates, _SELECTION, scale=scale)
+            residual = y - best.evaluate(X)
+            if progress:
+                progress(0.7 * (rnd + 1) / max(s.rounds, 1), f"round {rnd + 1}: pool {len(pool)}")
+        self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
+        self.stats["pool"] = len(pool)
+        if best is not None and budget > 0:
+            op_start = time.perf_counter()
+            gp = self._operon(best, columns, X, y, Xh, yh, seed, loss, budget)
+            attach_holdout(gp, Xh, yh, loss)
+            candidates += gp
+            self.timings["operon"] = time.perf_counter() - op_start
+        if progress:
+            progress(1.0, f"{len(candidates)} candidates")
+        return candidates
+
+    def _sparsify(
+        self,
+        space: FeatureSpace,
+        columns: _Columns,
+        theta_pool: np.ndarray,
+        pool: np.ndarray,
+        y: np.ndarray,
+        loss: str,
+        seen: set[frozenset[int]],
+    ) -> list[Candidate]:
+        """Every new active set of the sparse paths over (1, pool features) as a candidate (seen: sets so far,
+        as feature indices with -1 for the constant)."""
+        theta = np.hstack([np.ones((len(y), 1)), theta_pool])
+        problem = LeastSquaresProblem(theta, y)
+        exprs = [sympy.Integer(1)] + [space.expressions[i] for i in pool]
+        feats = [Feature(f"x{k}", e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
+                 for k, e in enumerate(exprs)]
+        nodes = [complexity(e) for e in exprs]
+        sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes)
+        by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
+        limit = self.settings.max_terms + 1  # + the constant
+        for k, active in enumerate(sets):
+            if active.sum() > limit:  # larger models are never kept: not solved either
+                continue
+            key = frozenset(int(pool[j - 1]) if j > 0 else -1 for j in np.flatnonzero(active))
+            if key in seen:
+                continue
+            seen.add(key)
+            coef = problem.solve(active)
+            r = y - theta @ coef
+            by_size.setdefault(int(active.sum()), []).append((float(r @ r), k, coef))
+        kept = [e for size in sorted(by_size) for e in sorted(by_size[size], key=lambda e: e[:2])[:_KEEP]]
+        out: list[Candidate] = []
+        for _, k, coef in kept:
+            active = sets[k]
+            if loss == "absolute" and np.count_nonzero(active) <= self.sparse.irls_max_terms:
+                coef = problem.l1_refit(active, coef, self.sparse.irls_iterations)
+            idx = np.flatnonzero(coef)
+            if idx.size == 0:
+                continue
+            expr = sparse_expression(feats, coef)
+            size = sum(nodes[j] + (1 if j == 0 else 2) for j in idx) + (1 if idx.size > 1 else 0)
+            c = coef[idx]
+            fidx = np.asarray([pool[j - 1] for j in idx if j > 0], int)
+            const = float(coef[0]) if 0 in idx else 0.0
+            cf = np.asarray([coef[j] for j in idx if j > 0])
+            out.append(
+                Candidate(
+                    expression=expr,
+                    complexity=size,
+                    train_loss=loss_fn(y, theta[:, idx] @ c, loss),
+                    engine=self.name,
+                    predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
+                )
+            )
+        return out
+
+    def _operon(
+        self,
+        best: Candidate,
+        columns: _Columns,
+        X: np.ndarray,
+        y: np.ndarray,
+        Xh: np.ndarray,
+        yh: np.ndarray,
+        seed: int,
+        loss: str,
+        generations: int,
+    ) -> list[Candidate]:
+        """Genetic programming on best's residual, seeded with the primitives and best's features."""
+        try:
+            from pyoperon.sklearn import SymbolicRegressor
+        except ImportError as exc:
+            raise UserError(f"the discovery engine needs pyoperon ({exc})",
+                            hint="pip install pyoperon") from None
+        s = self.settings
+        prims = list(columns.space.primitives)
+        seeds = _product_factors(best.expression)
+        names = prims + [f"s{k}" for k in range(len(seeds))]
+        mapping: dict[str, sympy.Expr] = {n: PRIMITIVE_SYMBOLS[n] for n in prims}
+        mapping.update({f"s{k}": e for k, e in enumerate(seeds)})
+        seed_fn = _lambdify(prims, seeds)
+        P = columns.primitives(X)
+        inputs = np.hstack([P, seed_fn(P)]) if seeds else P
+        residual = y - best.evaluate(X)
+        reg = SymbolicRegressor(
+            allowed_symbols="add,sub,mul,div,constant,variable",
+            objectives=["r2", "length"],
+            optimizer_iterations=s.operon_optimizer_iterations,
+            population_size=s.operon_population,
+            generations=generations,
+            max_length=s.operon_max_length,
+            max_depth=8,
+            n_threads=s.operon_threads,
+            random_state=int(seed),
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            reg.fit(inputs, residual)
+        self.stats["operon_generations"] = int(reg.stats_.get("generations", generations))
+        self.stats["operon_front"] = len(reg.pareto_front_)
+        out: list[Candidate] = []
+        seen: set[str] = set()
+        for point in reg.pareto_front_:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # "Model contains no variables" for a constant
+                text = reg.get_model_string(point["tree"], _PRECISION, names).replace("^", "**")
+            try:
+                extra = parse_expression(text, mapping)
+            except (ExpressionError, RecursionError):
+                continue
+            if str(extra) in seen or extra.is_number:
+                continue
+            seen.add(str(extra))
+            fn = _lambdify(prims, [extra])
+            expr = sympy.Add(best.expression, extra, evaluate=False)
+
+            def predict(X_: np.ndarray, fn: Callable[[np.ndarray], np.ndarray] = fn) -> np.ndarray:
+                return best.evaluate(X_) + fn(columns.primitives(X_))[:, 0]
+
+            out.append(
+                Candidate(
+                    expression=expr,
+                    complexity=best.complexity + complexity(extra) + 1,
+                    train_loss=loss_fn(y, predict(X), loss),
+                    engine=f"{self.name}(+operon)",
+                    predict=predict,
+                )
+            )
+        return out
+
+
+_LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
+_SELECTION = SelectionSettings()  # the residual's model: the same held-out pick as identify's
+_KEEP = 3  # candidates kept per model size (number of terms): the best by training residual
+
+
+class _Basis:
+    """An orthonormal basis of the pool's columns (and the constant), to keep only independent features."""
+
+    def __init__(self, n: int, tol: float = 1e-8):
+        self.q = np.full((n, 1), 1.0 / np.sqrt(n))
+        self.tol = tol
+
+    def add(self, col: np.ndarray) -> bool:
+        """Add col if it is not (numerically) a combination of the basis; True when added."""
+        norm = float(np.linalg.norm(col))
+        if not np.isfinite(norm) or norm == 0.0:
+            return False
+        v = col / norm
+        for _ in range(2):  # twice: classical Gram-Schmidt loses orthogonality once
+            v = v - self.q @ (self.q.T @ v)
+        rest = float(np.linalg.norm(v))
+        if rest <= self.tol:
+            return False
+        self.q = np.hstack([self.q, (v / rest)[:, None]])
+        return True
+
+
+def _standardized(F: np.ndarray) -> np.ndarray:
+    """Columns centred and scaled to unit RMS; unusable columns (constant, not finite) all NaN."""
+    with np.errstate(all="ignore"):
+        fc = F - F.mean(axis=0)
+        std = np.sqrt(np.mean(fc * fc, axis=0))
+        ok = (std > 1e-12 * np.maximum(np.abs(F).max(axis=0), 1e-300)) & np.all(np.isfinite(F), axis=0)
+        return np.where(ok, fc / np.where(ok, std, 1.0), np.nan)
+
+
+def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """|correlation| of each standardized column of Z with r (sure independence screening); -inf where
+    a column is unusable."""
+    rc = r - r.mean()
+    rs = float(np.sqrt(np.mean(rc * rc)))
+    with np.errstate(all="ignore"):
+        scores = np.abs(np.nan_to_num(Z.T @ rc, nan=np.nan)) / (len(r) * (rs if rs > 0 else 1.0))
+    return np.where(np.isfinite(scores), scores, -np.inf)
+
+
+def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:
+    """The non-constant features of a sum of coefficient x feature (the GP's seed inputs)."""
+    out: list[sympy.Expr] = []
+    for term in sympy.Add.make_args(expr):
+        factors = [f for f in sympy.Mul.make_args(term) if not f.is_number]
+        if factors:
+            feature = sympy.Mul(*factors)
+            if feature not in out:
+                out.append(feature)
+    return out
+
+
+def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray], np.ndarray]:
+    """P (N, n_primitives) -> (N, len(exprs)) for expressions in the primitive names."""
+    fn = sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in prims], exprs, modules="numpy")
+
+    def matrix(P: np.ndarray) -> np.ndarray:
+        with np.errstate(all="ignore"):
+            cols = fn(*[P[:, k] for k in range(P.shape[1])])
+        return np.column_stack([np.broadcast_to(np.asarray(c, float), (P.shape[0],)) for c in cols])
+
+    return matrix

@@ -1,0 +1,183 @@
+"""The engine settings (YAML: identify --settings FILE; every key optional), typed and validated.
+
+Kept apart from the engines and the registry so that both can import them (no import cycle).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import yaml
+
+from bridge.errors import UserError
+from identification.library import DEFAULT_GROUPS, GROUPS
+
+
+@dataclass(frozen=True)
+class SparseSettings:
+    """Sequentially thresholded least squares over the candidate library."""
+
+    groups: tuple[str, ...] = DEFAULT_GROUPS  # library groups (identification.library)
+    thresholds: int = 40  # points of the threshold sweep (log-spaced)
+    threshold_min: float = 1e-7  # smallest term contribution kept (coef * feature std / target std)
+    threshold_max: float = 0.5
+    max_iterations: int = 25  # STLSQ iterations per threshold
+    backward: bool = True  # also the backward-elimination path (every model size)
+    forward_terms: int = 25  # also greedy forward selection up to this many terms (0: off)
+    swap_max_terms: int = 8  # forward sets up to this size also try each term's simpler same-group terms
+    irls_iterations: int = 10  # absolute-error refit (loss: absolute); each stops at <0.1% gain
+    irls_max_terms: int = 24  # larger candidates (overfits, the held-out yardstick) stay least squares
+
+
+@dataclass(frozen=True)
+class OperonSettings:
+    """pyoperon's NSGA-II genetic programming (objectives r2 and length: a real Pareto front)."""
+
+    population_size: int = 500  # generations: the identify budget (an iteration count, no time cap)
+    max_length: int = 40
+    max_depth: int = 10
+    optimizer_iterations: int = 10  # constant fitting (0 would turn it off)
+    n_threads: int = 2
+    allowed_symbols: str = "add,sub,mul,div,sin,cos,constant,variable"
+    engineered_inputs: bool = True  # f1..f4, g, the thrust directions and cos(phi)cos(theta) as inputs
+
+
+@dataclass(frozen=True)
+class PysrSettings:
+    """PySR (Julia) behind the same interface."""
+
+    populations: int = 8  # iterations: the identify budget
+    maxsize: int = 30
+    binary_operators: tuple[str, ...] = ("+", "-", "*", "/")
+    unary_operators: tuple[str, ...] = ("sin", "cos")
+    probe_timeout_s: float = 60.0
+    engineered_inputs: bool = True
+
+
+@dataclass(frozen=True)
+class DiscoverySettings:
+    """The discovery engine (identification.discovery): features grown from body-frame primitives.
+
+    Budgets are counts (rungs, screened features, rounds; the GP's generations are identify's budget), never
+    seconds.
+    """
+
+    primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
+    operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
+    rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
+    screen: int = 40  # features added to the pool per round by sure independence screening
+    beam: int = 40  # rung-2 features (best screened) that are grown into rung 3
+    rounds: int = 3  # screen -> sparsify -> residual rounds
+    max_terms: int = 20  # forward-selection path length in the sparsifier; larger models are not kept
+    thresholds: int = 12  # points of the sparsifier's STLSQ threshold sweep (at most sparse.thresholds)
+    operon_population: int = 100  # genetic programming on the sparse model's residual, always run, for
+    # `budget` generations (identify's --budget)
+    operon_max_length: int = 15
+    operon_optimizer_iterations: int = 5
+    operon_threads: int = 1
+
+
+@dataclass(frozen=True)
+class SelectionSettings:
+    """The pick on held-out data: the smallest candidate with loss <= best*(1+rel_tol) + abs_tol*std(y)."""
+
+    rel_tol: float = 0.02
+    abs_tol: float = 1e-4
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    """All engine settings."""
+
+    sparse: SparseSettings = SparseSettings()
+    operon: OperonSettings = OperonSettings()
+    pysr: PysrSettings = PysrSettings()
+    selection: SelectionSettings = SelectionSettings()
+    discovery: DiscoverySettings = DiscoverySettings()
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain mapping (for the model file)."""
+        return _plain(dataclasses.asdict(self))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def _coerce(where: str, key: str, tp: Any, value: Any) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return _section(where, key, tp, value)
+    if origin is tuple:
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise UserError(f"{where}: key '{key}' must be a list of strings, got {value!r}")
+        return tuple(value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise UserError(f"{where}: key '{key}' must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise UserError(f"{where}: key '{key}' must be an integer >= 0, got {value!r}")
+        return value
+    if tp is float:
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not np.isfinite(value)
+            or value < 0
+        ):
+            raise UserError(f"{where}: key '{key}' must be a number >= 0, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise UserError(f"{where}: key '{key}' must be a string, got {value!r}")
+        return value
+    raise TypeError(tp)
+
+
+def _section(where: str, prefix: str, cls: type, data: Any) -> Any:
+    if not isinstance(data, dict):
+        raise UserError(f"{where}: key '{prefix or '(top level)'}' must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    values = {}
+    for key, value in data.items():
+        full = f"{prefix}.{key}" if prefix else str(key)
+        if key not in names:
+            raise UserError(
+                f"{where}: unknown key '{full}'", hint=f"keys allowed here: {', '.join(sorted(names))}"
+            )
+        values[key] = _coerce(where, full, hints[key], value)
+    return cls(**values)
+
+
+def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
+    """Engine settings from a YAML file (None: the defaults); a bad key or value is a UserError."""
+    if path is None:
+        return EngineSettings()
+    where = f"settings file {path}"
+    try:
+        data = yaml.safe_load(open(path, encoding="utf-8").read())
+    except FileNotFoundError:
+        raise UserError(f"{where}: not found") from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise UserError(f"{where}: cannot read it: {exc}") from None
+    settings = _section(where, "", EngineSettings, data or {})
+    bad = [g for g in settings.sparse.groups if g not in GROUPS]
+    if bad:
+        raise UserError(
+            f"{where}: key 'sparse.groups': unknown group {bad[0]!r}", hint=f"known: {', '.join(GROUPS)}"
+        )
+    return settings

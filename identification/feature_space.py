@@ -1,0 +1,205 @@
+"""Candidate features grown from primitives by operators, with dimensional analysis (SISSO-style rungs).
+
+Each primitive carries a unit as exponents of (m, s) (identification.body_frame). Operators:
+- rung 1 (unary, on one primitive): x ("id"), x^2 ("pow"), |x| ("abs", where x takes both signs),
+  1/x and 1/x^2 ("inv", for a quantity physically bounded away from zero, the height, and > 0 in the data),
+  sin x and cos x ("sincos", only for a dimensionless x),
+  the norm sqrt(sum x_i^2) of a vector group ("norm", only when every member has the same unit: adding unlike
+  units is invalid); the signed sums sum_i s_i x_i and sum_i s_i x_i^2 (s_i = +-1) over a group of like
+  scalars with like units ("add": the rotors' f1..f4 and momentum-like combinations; built first, so
+  that where a pool is reduced to independent columns a combination stands for its members)
+- rung 2: products of two rung-1 features ("mul"; quotients are products with the "inv" features)
+- rung 3: products of a beam of the best rung-2 features with the rung-1 features
+Invalid combinations (sin of a length, a sum of a velocity and a rate) are never built and are counted in
+`FeatureSpace.pruned`. Features are sympy expressions in the primitive names; duplicates (the same
+expression, or a constant column) are dropped. A feature's values are computed from its recipe, so the same
+space evaluates on any data (training, held-out, validation).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import sympy
+
+from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, Unit
+
+OPERATORS: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
+
+
+def combine_units(op: str, *units: Unit) -> Unit | None:
+    """The unit of op(units...) as (m, s) exponents, or None when the combination is dimensionally invalid."""
+    if op in ("add", "sub", "norm"):
+        return units[0] if all(u == units[0] for u in units) else None
+    if op in ("sin", "cos"):
+        return (0, 0) if units[0] == (0, 0) else None
+    if op == "mul":
+        return (sum(u[0] for u in units), sum(u[1] for u in units))
+    if op == "abs":
+        return units[0]
+    raise ValueError(f"unknown operator {op!r}")
+
+
+def power_unit(unit: Unit, p: int) -> Unit:
+    """The unit of x^p."""
+    return (unit[0] * p, unit[1] * p)
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """How a feature's column is computed: op over primitive columns (unary) or parent features (mul)."""
+
+    op: str  # id, pow2, abs, inv1, inv2, sin, cos, norm, sum1, sum2, mul
+    args: tuple[int, ...]  # primitive indices (unary, norm, sums) or feature indices (mul)
+    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument
+
+
+@dataclass
+class FeatureSpace:
+    """The grown features: expressions (primitive names), units, rungs and recipes, in a fixed order."""
+
+    primitives: tuple[str, ...]
+    expressions: list[sympy.Expr] = field(default_factory=list)
+    units: list[Unit] = field(default_factory=list)
+    rungs: list[int] = field(default_factory=list)
+    recipes: list[Recipe] = field(default_factory=list)
+    pruned: dict[str, int] = field(default_factory=dict)
+    _keys: dict[str, int] = field(default_factory=dict, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.expressions)
+
+    def _add(self, expr: sympy.Expr, unit: Unit, rung: int, recipe: Recipe) -> int | None:
+        key = sympy.srepr(expr)
+        if key in self._keys or expr.is_number:
+            return None
+        self._keys[key] = len(self.expressions)
+        self.expressions.append(expr)
+        self.units.append(unit)
+        self.rungs.append(rung)
+        self.recipes.append(recipe)
+        return len(self.expressions) - 1
+
+    def _prune(self, why: str) -> None:
+        self.pruned[why] = self.pruned.get(why, 0) + 1
+
+    def columns(
+        self, P: np.ndarray, indices: Sequence[int], cache: dict[int, np.ndarray] | None = None
+    ) -> np.ndarray:
+        """The features' values (N, len(indices)) from the primitive matrix P (N, n_primitives)."""
+        cache = {} if cache is None else cache
+
+        def col(i: int) -> np.ndarray:
+            if i in cache:
+                return cache[i]
+            r = self.recipes[i]
+            with np.errstate(all="ignore"):
+                if r.op == "mul":
+                    v = col(r.args[0]) * col(r.args[1])
+                else:
+                    x = P[:, r.args[0]]
+                    if r.op == "id":
+                        v = x
+                    elif r.op == "pow2":
+                        v = x * x
+                    elif r.op == "abs":
+                        v = np.abs(x)
+                    elif r.op == "inv1":
+                        v = 1.0 / x
+                    elif r.op == "inv2":
+                        v = 1.0 / (x * x)
+                    elif r.op == "sin":
+                        v = np.sin(x)
+                    elif r.op == "cos":
+                        v = np.cos(x)
+                    elif r.op == "norm":
+                        v = np.sqrt(np.sum(P[:, list(r.args)] ** 2, axis=1))
+                    elif r.op in ("sum1", "sum2"):
+                        power = 1 if r.op == "sum1" else 2
+                        v = P[:, list(r.args)] ** power @ np.asarray(r.signs, float)
+                    else:
+                        raise ValueError(r.op)
+            cache[i] = v
+            return v
+
+        out = np.empty((P.shape[0], len(indices)))
+        for j, i in enumerate(indices):
+            out[:, j] = col(int(i))
+        return out
+
+
+def grow_unary(primitives: Sequence[str], operators: Sequence[str], P: np.ndarray) -> FeatureSpace:
+    """Rung 1: each primitive and the unary operators that are valid for its unit and its range in P."""
+    unknown = [o for o in operators if o not in OPERATORS]
+    if unknown:
+        raise ValueError(f"unknown operators {unknown} (known: {', '.join(OPERATORS)})")
+    space = FeatureSpace(tuple(primitives))
+    sym = [PRIMITIVE_SYMBOLS[n] for n in primitives]
+    groups: dict[str, list[int]] = {}
+    for k, name in enumerate(primitives):
+        groups.setdefault(PRIMITIVES[name].group, []).append(k)
+    if "add" in operators:
+        for members in groups.values():
+            if len(members) < 2 or not all(PRIMITIVES[primitives[k]].summable for k in members):
+                continue
+            u = combine_units("add", *[PRIMITIVES[primitives[k]].unit for k in members])
+            if u is None:
+                space._prune("sum of unlike units")
+                continue
+            patterns = [(1, *rest) for rest in itertools.product((1, -1), repeat=len(members) - 1)]
+            patterns.sort(key=lambda s_: (min(s_) < 0, abs(sum(s_))))  # the sum, then the balanced ones
+            for power, op in ((2, "sum2"), (1, "sum1")):
+                for signs in patterns:
+                    expr = sympy.Add(*[s_ * sym[k] ** power for s_, k in zip(signs, members, strict=True)])
+                    space._add(expr, power_unit(u, power), 1, Recipe(op, tuple(members), signs))
+    for k, name in enumerate(primitives):
+        x, unit, s = P[:, k], PRIMITIVES[name].unit, sym[k]
+        space._add(s, unit, 1, Recipe("id", (k,)))
+        if "pow" in operators:
+            space._add(s**2, power_unit(unit, 2), 1, Recipe("pow2", (k,)))
+        if "abs" in operators and np.any(x < 0) and np.any(x > 0):
+            space._add(sympy.Abs(s), unit, 1, Recipe("abs", (k,)))
+        if "inv" in operators and PRIMITIVES[name].positive and np.all(x > 0):
+            space._add(1 / s, power_unit(unit, -1), 1, Recipe("inv1", (k,)))
+            space._add(1 / s**2, power_unit(unit, -2), 1, Recipe("inv2", (k,)))
+        if "sincos" in operators:
+            for fn, op in ((sympy.sin, "sin"), (sympy.cos, "cos")):
+                u = combine_units(op, unit)
+                if u is None:
+                    space._prune(f"{op} of a dimensional argument")
+                    continue
+                space._add(fn(s), u, 1, Recipe(op, (k,)))
+    for members in groups.values():
+        if len(members) < 2 or "norm" not in operators:
+            continue
+        u = combine_units("norm", *[PRIMITIVES[primitives[k]].unit for k in members])
+        if u is None:
+            space._prune("norm of unlike units")
+            continue
+        expr = sympy.sqrt(sympy.Add(*[sym[k] ** 2 for k in members]))
+        space._add(expr, u, 1, Recipe("norm", tuple(members)))
+    return space
+
+
+def grow_products(space: FeatureSpace, left: Sequence[int], right: Sequence[int], rung: int) -> list[int]:
+    """Add the products left_i * right_j (each unordered pair once) as features of `rung`; their indices."""
+    added: list[int] = []
+    seen: set[tuple[int, int]] = set()
+    for a in left:
+        for b in right:
+            pair = (min(a, b), max(a, b))
+            if pair in seen:
+                continue
+            seen.add(pair)
+            unit = combine_units("mul", space.units[a], space.units[b])
+            if unit is None:  # never for products; kept for the rule's symmetry
+                space._prune("mul")
+                continue
+            i = space._add(space.expressions[a] * space.expressions[b], unit, rung, Recipe("mul", pair))
+            if i is not None:
+                added.append(i)
+    return added
+
