@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import sympy
 
-from identification.kinematics import rotation_matrix, rotation_matrix_sym
+from bridge.rotations import rotation_matrix
+from identification.kinematics import rotation_matrix_sym
 from identification.metrics import table_metrics
 from identification.model_file import (
     SYMBOLS,

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 import sympy
 
+from bridge.rotations import rotation_matrix
 from bridge.vehicle import VehicleConfig, load_vehicle
 from identification.body_frame import PRIMITIVE_SYMBOLS, primitive_matrix
-from identification.kinematics import rotation_matrix
 from identification.true_model import random_states
 
 

@@ -8,15 +8,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 PACKAGES = ("bridge", "sitl", "identification", "controller", "quadsr")
-# Known cycles, owned by other engineers (issue 16 leaves them to them); remove each entry with its cycle.
-KNOWN = (
-    # identification/dataset.py <-> identification/readers/*: removed by the dataset/readers owner
-    frozenset({"identification.dataset", "identification.readers", "identification.readers.dataflash",
-               "identification.readers.tlog", "identification.readers.ulog"}),
-    # identification/engine.py <-> its engines and pareto.py: removed by the SR engine (discovery) owner
-    frozenset({"identification.engine", "identification.operon_engine", "identification.pareto",
-               "identification.pysr_engine", "identification.sparse"}),
-)
+KNOWN: tuple[frozenset[str], ...] = ()  # none left: the identification cycles were broken by issues 12 and 14
 
 
 def project_modules(root: Path) -> dict[str, Path]:
