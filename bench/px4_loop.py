@@ -146,7 +146,7 @@ def main() -> int:
         rows.append((case, through_px4(args.px4, out, model, case, args.duration),
                      own_companion(out, model, case, args.duration)))
         print(f"{case}: RMS after 5 s through PX4 OFFBOARD {rows[-1][1] * 1000:.1f} mm, quadsr's own "
-              f"companion {rows[-1][2] * 1000:.2f} mm", flush=True)
+              f"companion {rows[-1][2] * 1000:.4f} mm", flush=True)
     checks = [(h["rtf_hover"] >= 5.0, f"real-time factor in hover {h['rtf_hover']:.1f} >= 5")]
     checks += [(px4 <= 0.05, f"{case} through PX4 OFFBOARD: RMS after 5 s {px4 * 1000:.1f} mm <= 50 mm")
                for case, px4, _ in rows]
