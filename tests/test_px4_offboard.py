@@ -61,6 +61,18 @@ def fly(work, model, port, out, trajectory="case2", duration=8.5) -> subprocess.
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def started(proc: subprocess.Popen) -> str:
+    """The companion's output up to its start line (printed once its law is derived, before it connects):
+    its start-up (imports, sympy, C compiler) then does not count against a budget of simulated time."""
+    head = ""
+    while "through PX4 OFFBOARD at" not in head:
+        line = proc.stdout.readline()
+        if not line:
+            raise AssertionError(f"quadsr fly ended before it started flying:\n{head}")
+        head += line
+    return head
+
+
 def test_case2_through_px4_offboard(px4_rt, tmp_path):
     run, gcs, work, model, port = px4_rt
     proc = fly(work, model, port, tmp_path / "case2")
@@ -105,13 +117,15 @@ def test_offboard_loss_failsafe_ends_the_flight_with_a_clear_message(px4_rt, tmp
     hold.write_text('name: hold\nduration: 60\nexpressions: {x: "2", y: "4", z: "-2.5", yaw: "0"}\n')
     gcs.drain()
     proc = fly(work, model, port, tmp_path / "loss", hold, 60)
+    head = started(proc)
+    gcs.drain()
     gcs.run_until(in_offboard, sim_s=30.0)
     os.kill(proc.pid, signal.SIGSTOP)  # the companion freezes: no more setpoints
     try:
         gcs.run_until(lambda g: not in_offboard(g), sim_s=10.0)
     finally:
         os.kill(proc.pid, signal.SIGCONT)
-    output, _ = proc.communicate(timeout=60)
+    output = head + proc.communicate(timeout=60)[0]
     assert proc.returncode == 4, output
     # the companion sees PX4 leave OFFBOARD, or (its queue overflowed while frozen) that its setpoints
     # stopped for longer than PX4's offboard-loss timeout
@@ -126,13 +140,15 @@ def test_disarm_ends_the_flight_with_a_clear_message(px4_rt, tmp_path):
     hold.write_text('name: hold\nduration: 60\nexpressions: {x: "2", y: "4", z: "-1.0", yaw: "0"}\n')
     gcs.drain()
     proc = fly(work, model, port, tmp_path / "disarm", hold, 60)
+    head = started(proc)
+    gcs.drain()
     try:
         gcs.run_until(lambda g: in_offboard(g) and g.armed, sim_s=30.0)
         gcs.run_until(lambda g: g.position[2] < -0.5, sim_s=20.0)
     except AssertionError as exc:
         proc.kill()
-        raise AssertionError(f"{exc}\nquadsr fly said:\n{proc.communicate()[0]}") from None
+        raise AssertionError(f"{exc}\nquadsr fly said:\n{head}{proc.communicate()[0]}") from None
     assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == mav.MAV_RESULT_ACCEPTED  # forced
-    output, _ = proc.communicate(timeout=60)
+    output = head + proc.communicate(timeout=60)[0]
     assert proc.returncode == 4, output
     assert "PX4 disarmed" in output and "Traceback" not in output
