@@ -5,9 +5,11 @@
 2. Case I and Case II flown by `quadsr fly --autopilot` through PX4 OFFBOARD (`quadsr px4 --mode realtime`,
    a fresh PX4 per case), beside quadsr's own companion flying the same case directly on a `quadsr sitl`
    (ideal sensors, true state): RMS of the 3-D error after 5 s from quadsr's truth.
+3. Identification from PX4-flown flights: the model learned from Case I's truth .tlog, validated on Case II's.
 
 Prints the figures, then PASS/FAIL lines: real-time factor in flight >= 5; RMS after 5 s <= 5 cm for each case
-through PX4. Usage: python bench/px4_loop.py [--px4 DIR] [--duration 20] [--out DIR]
+through PX4; R^2 >= 0.95 per target on the second flight.
+Usage: python bench/px4_loop.py [--px4 DIR] [--duration 20] [--out DIR]
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 import subprocess
 import sys
 import tempfile
@@ -125,6 +128,23 @@ def own_companion(out: Path, model: Path, case: str, duration: float) -> float:
     return rms_after_5s(out / f"own-{case}" / "steps.csv")
 
 
+def identify_and_validate(out: Path) -> dict[str, float]:
+    """Identify (sparse engine) from the Case I flight PX4 flew (quadsr's truth .tlog), validate on Case II's:
+    R^2 per target."""
+    train, test = out / "px4-case1" / "truth.tlog", out / "px4-case2" / "truth.tlog"
+    model = out / "px4-learned.yaml"
+    subprocess.run([*QUADSR, "identify", str(train), "-o", str(model), "--engine", "sparse", "--no-progress"],
+                   cwd=REPO, capture_output=True, text=True, check=True)
+    done = subprocess.run([*QUADSR, "validate", str(model), str(test), "--out", str(out / "px4-validation")],
+                          cwd=REPO, capture_output=True, text=True, check=True)
+    r2 = {}
+    for line in done.stdout.splitlines():
+        m = re.match(r"\| \S+ \((\w+)\) \|.*\| ([-\d.e+]+|nan) \|$", line)
+        if m:
+            r2[m.group(1)] = float(m.group(2))
+    return r2
+
+
 def main() -> int:
     """Run the measurements, print them and the PASS/FAIL lines; exit 0 when all pass."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -146,8 +166,13 @@ def main() -> int:
         rows.append((case, through_px4(args.px4, out, model, case, args.duration),
                      own_companion(out, model, case, args.duration)))
         print(f"{case}: RMS after 5 s through PX4 OFFBOARD {rows[-1][1] * 1000:.1f} mm, quadsr's own "
-              f"companion {rows[-1][2] * 1000:.2f} mm", flush=True)
+              f"companion {rows[-1][2] * 1000:.4f} mm", flush=True)
+    r2 = identify_and_validate(out)
+    print("identified from the Case I flight through PX4 (truth .tlog), validated on Case II's: R^2 "
+          + ", ".join(f"{k} {v:.4f}" for k, v in r2.items()), flush=True)
     checks = [(h["rtf_hover"] >= 5.0, f"real-time factor in hover {h['rtf_hover']:.1f} >= 5")]
+    checks.append((len(r2) == 6 and min(r2.values()) >= 0.95,
+                   "R^2 >= 0.95 on every target of the second flight"))
     checks += [(px4 <= 0.05, f"{case} through PX4 OFFBOARD: RMS after 5 s {px4 * 1000:.1f} mm <= 50 mm")
                for case, px4, _ in rows]
     for ok, text in checks:

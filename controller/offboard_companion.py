@@ -87,8 +87,10 @@ class OffboardCompanion(Companion):
         try:
             message = self._start(link)
             if not message:
-                t0_ms, completed, crashed, message = self._loop(link, log)
-                link.set_mode(PX4.hold)
+                try:
+                    t0_ms, completed, crashed, message = self._loop(link, log)
+                finally:  # also on Ctrl-C: PX4 holds where the flight ended instead of a loss failsafe
+                    link.set_mode(PX4.hold)
         finally:
             link.close()
             tlog.close()

