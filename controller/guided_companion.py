@@ -17,9 +17,9 @@ multiplied by cos roll cos pitch of ArduPilot's attitude estimate.
 
 Metrics as the PX4 path's: from quadsr's truth log (the SITL's --log) when given, else from ArduPilot's
 estimate (LOCAL_POSITION_NED, NED m from its EKF origin, which is where the SITL's vehicle starts).
-ArduPilot's time_boot_ms runs on the JSON backend's simulated time (ArduPilot advances its clock by the differences of
-the SITL's timestamps, from its first), so truth rows are taken at the same time_boot_ms (measured: the best
-alignment of truth and estimate is within 40 ms of it).
+ArduPilot's time_boot_ms runs on the JSON backend's simulated time (ArduPilot advances its clock by the
+differences of the SITL's timestamps, from its first), so truth rows are taken at the same time_boot_ms
+(measured: the best alignment of truth and estimate is within 40 ms of it).
 """
 
 from __future__ import annotations
