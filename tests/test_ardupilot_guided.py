@@ -80,3 +80,19 @@ def test_refused_arming_then_case2_through_guided(arducopter, tmp_path):
         truth = (float(r["true_x"]), float(r["true_y"]), float(r["true_z"]))
         assert math.dist(truth, (2.0, 4.0, -0.3 * t)) < 0.15, (t, truth)
     assert (tmp_path / "case2" / "metrics.md").is_file() and (tmp_path / "case2" / "tracking.png").is_file()
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--autopilot", "tcp:127.0.0.1:5760", "--autopilot-type", "inav"], "is not px4 or ardupilot"),
+        (["--autopilot", "tcp:127.0.0.1"], "tcp:HOST:PORT"),
+    ],
+)
+def test_fly_autopilot_refuses_bad_input_clearly(flags, message, tmp_path):
+    model = tmp_path / "true.yaml"
+    write_true_model(load_vehicle("fang-chen-buaa"), model)
+    argv = [sys.executable, "-m", "quadsr.cli", "fly", "--model", str(model), "--trajectory", "case2",
+            "--out", str(tmp_path / "o"), *flags]
+    run = subprocess.run(argv, capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert run.returncode == 2 and message in run.stderr and "Traceback" not in run.stderr, run.stderr
