@@ -214,5 +214,5 @@ def _result_name(result: int | None) -> str:
 
 
 def _said(link: OffboardLink) -> str:
-    texts = link.state.status_texts[-3:]
+    texts = list(dict.fromkeys(link.state.status_texts))[-3:]  # the newest three distinct texts
     return (f"; {link.flavour.name} said: " + " | ".join(texts)) if texts else ""
