@@ -71,8 +71,12 @@ class GuidedCompanion(OffboardCompanion):
                 return (f"{name} sent no local position within {s.connect_timeout:g} s: its EKF has no "
                         f"origin yet (GUIDED needs a position estimate; wait for GPS){_said(link)}")
             link.poll(0.1)
-        if not link.set_param("GUID_OPTIONS", GUIDED_THRUST_AS_THRUST):
-            return f"{name} did not take GUID_OPTIONS = {GUIDED_THRUST_AS_THRUST} (thrust as thrust)"
+        options = link.get_param("GUID_OPTIONS")
+        if options is None:
+            return f"{name} did not answer a read of GUID_OPTIONS (is it ArduCopter?)"
+        options = int(options) | GUIDED_THRUST_AS_THRUST  # the user's other bits kept (the value is saved)
+        if not link.set_param("GUID_OPTIONS", options):
+            return f"{name} did not take GUID_OPTIONS = {options} (bit 3: thrust as thrust)"
         self.hover_demand = link.get_param("MOT_THST_HOVER")
         if self.hover_demand is None or not 0.0 < self.hover_demand < 1.0:
             return f"{name} gave no usable MOT_THST_HOVER ({self.hover_demand})"
