@@ -11,8 +11,13 @@ training flight, the second (other magnitudes and frequencies) the validation fl
 - identification: `quadsr identify` on the training flight's truth .tlog and on its DataFlash log, then
   `quadsr validate` on the validation flight's: R^2 per target.
 
-PASS lines: real-time factor >= 5 (the issue's floor with --speedup on 2 cores), hold within 0.15 m in both,
-R^2 >= 0.99 for every target from the truth .tlog.
+Then a third session at --guided-speedup (the companion is not in lockstep: it must keep up with
+ArduPilot's clock): quadsr's model-derived companion flies hover (1 m above the EKF origin), Case I and
+Case II through GUIDED (`quadsr fly --autopilot tcp:...`, SET_ATTITUDE_TARGET attitude + thrust), each
+followed by LAND: RMS, RMS after 5 s and final 3-D error from quadsr's truth .tlog.
+
+PASS lines: GUIDED final error < 0.15 m on each trajectory, real-time factor >= 5 (the issue's floor with
+--speedup on 2 cores), hold within 0.15 m in both, R^2 >= 0.99 for every target from the truth .tlog.
 
 Usage: python bench/ardupilot_loop.py [--ardupilot DIR] [--speedup 100] [--out DIR] [--budget 30]
 """
@@ -102,6 +107,45 @@ def fly(name: str, args, out: Path) -> dict:
             "bin": bins[0] if bins else None, "chirps": chirps}
 
 
+GUIDED_FLIGHTS = (("hover", 10.0), ("case1", 20.0), ("case2", 10.5))  # (trajectory, duration s)
+HOVER_YAML = 'name: hover\nduration: 10\nexpressions: {x: "0", y: "0", z: "-1.0", yaw: "0"}\n'
+FLY_LINE = re.compile(r"RMS ([\d.]+) m, RMS after 5 s ([\d.]+|n/a) mm?, final ([\d.]+) mm")
+
+
+def guided(args, out: Path) -> dict[str, tuple[float, float, float]]:
+    """The companion through GUIDED: trajectory -> (RMS m, RMS after 5 s m, final m) from the truth."""
+    from bridge.vehicle import load_vehicle
+    from identification.true_model import write_true_model
+    from quadsr.ardupilot_process import TCP_BASE
+
+    model = out / "true.yaml"
+    write_true_model(load_vehicle("fang-chen-buaa"), model)
+    (out / "hover.yaml").write_text(HOVER_YAML)
+    tlog = out / "guided.tlog"
+    ap = ArduPilotProcess(Path(args.ardupilot), out / "ap-guided", tlog, speedup=args.guided_speedup)
+    rows = {}
+    try:
+        gcs = ArduCopterLink(f"tcp:127.0.0.1:{TCP_BASE + 2 + 10 * ap.instance}", wall_timeout=120.0)
+        gcs.wait_ekf_gps(180.0)
+        for name, duration in GUIDED_FLIGHTS:
+            trajectory = str(out / "hover.yaml") if name == "hover" else name
+            text = quadsr("fly", "--model", str(model), "--trajectory", trajectory, "--duration",
+                          f"{duration:g}", "--autopilot", ap.mavlink, "--truth", str(tlog), "--out",
+                          str(out / f"guided-{name}"), "--no-progress")
+            m = FLY_LINE.search(text)
+            after = float("nan") if m.group(2) == "n/a" else float(m.group(2)) * 1e-3
+            rows[name] = (float(m.group(1)), after, float(m.group(3)) * 1e-3)
+            drain_until = time.monotonic() + 10.0  # the GCS's backlog of the flight, read at once
+            while gcs.poll(0.01) is not None and time.monotonic() < drain_until:
+                pass
+            if gcs.armed:  # handed back in LOITER: ArduCopter may have landed and disarmed by itself
+                gcs.land(90.0)
+        gcs.close()
+    finally:
+        ap.stop()
+    return rows
+
+
 def ceiling(ardupilot: Path, out: Path, wall_s: float = 15.0) -> float:
     """Frames per wall second ArduCopter runs against a stationary responder (a fixed JSON line, no physics,
     no sensors): the most any JSON physics can get from it on this machine now."""
@@ -171,6 +215,8 @@ def main() -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ardupilot", default=str(REPO.parent / "shared" / "ardupilot"))
     parser.add_argument("--speedup", type=float, default=100.0)
+    parser.add_argument("--guided-speedup", type=float, default=4.0,
+                        help="ArduPilot's --speedup for the GUIDED companion flights")
     parser.add_argument("--out", default=None)
     parser.add_argument("--budget", type=int, default=30, help="identification budget per target, s")
     args = parser.parse_args()
@@ -189,6 +235,10 @@ def main() -> int:
         print(f"{name}: EKF on GPS at {f['ekf_s']:.1f} s; real-time factor in flight {f['rtf']:.2f}; hold "
               f"over {HOLD_S:g} s at {HEIGHT:g} m: ArduPilot's estimate within {f['estimate_hold_m']:.3f} m, "
               f"truth within {f['truth_hold_m']:.3f} m; chirps: {chirps}", flush=True)
+    rows = guided(args, out)
+    for name, (rms, after, final) in rows.items():
+        print(f"GUIDED companion (--speedup {args.guided_speedup:g}), {name}: RMS {rms:.4f} m, RMS after 5 s "
+              f"{after:.4f} m, final {final:.4f} m (truth)", flush=True)
     r2_tlog = identify_and_validate(flights["train"]["tlog"], flights["validate"]["tlog"], out, args.budget,
                                     [])
     print("R^2 on the validation flight, model from the training flight's truth .tlog: "
@@ -200,7 +250,8 @@ def main() -> int:
         print("R^2 on the validation flight, model from the training flight's DataFlash log (RCOU through "
               "the motor curve, EKF states): " + ", ".join(f"{k} {v:.4f}" for k, v in r2_bin.items()),
               flush=True)
-    checks = []
+    checks = [(final < 0.15, f"GUIDED {name}: final error {final:.4f} m < 0.15") for name, (_, _, final)
+              in rows.items()]
     for name, f in flights.items():
         checks.append((f["rtf"] >= 5.0, f"{name}: real-time factor {f['rtf']:.2f} >= 5"))
         checks.append((f["estimate_hold_m"] < 0.15 and f["truth_hold_m"] < 0.15,

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 from bridge.link import Endpoint, UdpLink, parse_endpoint
 from bridge.messages import mavlink
+from bridge.stream_link import TcpClientLink, is_tcp_address, parse_tcp_endpoint
 from bridge.tlog import TlogWriter
 
 COMPANION_SYSTEM_ID = 245  # the companion's own ids (MAVSDK's defaults for a companion/GCS)
@@ -89,16 +90,22 @@ class AutopilotState:
 
 
 class OffboardLink:
-    """A companion's MAVLink link to the autopilot at `address` (udp:HOST:PORT, where it listens)."""
+    """A companion's MAVLink link to the autopilot at `address` (udp:HOST:PORT, where it listens, or
+    tcp:HOST:PORT, connected to for up to connect_timeout wall s)."""
 
     def __init__(self, address: str, flavour: AutopilotFlavour = PX4, tlog: TlogWriter | None = None,
-                 local: str | None = None):
+                 local: str | None = None, connect_timeout: float = 30.0):
         self.address = address
         self.flavour = flavour
-        if local is None:
-            local = default_local(parse_endpoint(address))
-        self.link = UdpLink(local=local, remote=address, system_id=COMPANION_SYSTEM_ID,
-                            component_id=COMPANION_COMPONENT_ID, tlog=tlog)
+        if is_tcp_address(address):  # ArduPilot SITL's SERIAL0: tcp:HOST:5760+10N
+            self.link = TcpClientLink(parse_tcp_endpoint(address), COMPANION_SYSTEM_ID,
+                                      COMPANION_COMPONENT_ID,
+                                      tlog, connect_timeout)
+        else:
+            if local is None:
+                local = default_local(parse_endpoint(address))
+            self.link = UdpLink(local=local, remote=address, system_id=COMPANION_SYSTEM_ID,
+                                component_id=COMPANION_COMPONENT_ID, tlog=tlog)
         self.state = AutopilotState()
         self._acks: dict[int, int] = {}
         self._next_heartbeat = 0.0
@@ -193,6 +200,33 @@ class OffboardLink:
         """DO_SET_MODE to `mode`; the ack result."""
         return self.command(mavlink.MAV_CMD_DO_SET_MODE, mode.set_params)
 
+    def set_param(self, name: str, value: float, timeout: float = 5.0) -> bool:
+        """PARAM_SET (float), re-sent every 0.25 s wall until echoed in PARAM_VALUE; False after timeout s."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.link.send([mavlink.MAVLink_param_set_message(self.state.system_id or 0, 1, name.encode(),
+                                                              float(value), mavlink.MAV_PARAM_TYPE_REAL32)])
+            resend = time.monotonic() + COMMAND_RESEND_S
+            while time.monotonic() < min(resend, deadline):
+                for msg in self.poll(0.02):
+                    if msg.get_type() == "PARAM_VALUE" and _param_name(msg.param_id) == name and \
+                            abs(msg.param_value - value) <= 1e-6 * max(1.0, abs(value)):
+                        return True
+        return False
+
+    def get_param(self, name: str, timeout: float = 5.0) -> float | None:
+        """PARAM_REQUEST_READ, re-sent every 0.25 s wall until its PARAM_VALUE; None after timeout s."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.link.send([mavlink.MAVLink_param_request_read_message(self.state.system_id or 0, 1,
+                                                                       name.encode(), -1)])
+            resend = time.monotonic() + COMMAND_RESEND_S
+            while time.monotonic() < min(resend, deadline):
+                for msg in self.poll(0.02):
+                    if msg.get_type() == "PARAM_VALUE" and _param_name(msg.param_id) == name:
+                        return float(msg.param_value)
+        return None
+
     def in_mode(self, mode: FlightMode) -> bool:
         """True if the last HEARTBEAT showed `mode`."""
         c = self.state.custom_mode
@@ -216,3 +250,7 @@ class OffboardLink:
     def close(self) -> None:
         """Close the socket."""
         self.link.close()
+
+
+def _param_name(raw: bytes | str) -> str:
+    return (raw.decode("ascii", "replace") if isinstance(raw, bytes) else str(raw)).rstrip("\x00")

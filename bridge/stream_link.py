@@ -245,3 +245,109 @@ class TcpLink:
 
     def __repr__(self) -> str:
         return f"TcpLink(local={self.local}, peer={self._conn_peer})"
+
+
+class TcpClientLink(TcpLink):
+    """A TCP MAVLink 2 link that connects to a listening peer (ArduPilot SITL's SERIAL0, tcp:HOST:5760+10N),
+    with the calls of bridge.link.UdpLink a client uses (send, recv, drain, stats, close). Connection refused
+    is retried for connect_timeout wall s (ArduPilot opens its port a moment after it starts); a lost
+    connection is not reopened (recv then returns [])."""
+
+    def __init__(self, remote: Endpoint, system_id: int = 1, component_id: int = 1,
+                 tlog: TlogWriter | str | None = None, connect_timeout: float = 30.0):
+        self.system_id = int(system_id)
+        self.component_id = int(component_id)
+        self.signing = None
+        self.accept_system_ids = None
+        self.on_change = None
+        self.stats = LinkStats()
+        self.seq = 0
+        self.connections = self.refused = 0
+        self.last_recv_time = 0.0
+        self._pending = b""
+        self._closed = False
+        self._server = None
+        deadline = time.monotonic() + connect_timeout
+        while True:
+            try:
+                conn = socket.create_connection((remote.host, remote.port), timeout=SEND_TIMEOUT_S)
+                break
+            except ConnectionRefusedError:
+                if time.monotonic() > deadline:
+                    raise UserError(f"nothing accepts a connection at tcp:{remote.host}:{remote.port} (tried "
+                                    f"for {connect_timeout:g} s)",
+                                    hint="is ArduPilot running (quadsr ardupilot)? its MAVLink port is "
+                                         "tcp:127.0.0.1:5760+10*N for instance -I N") from None
+                time.sleep(0.2)
+            except OSError as exc:
+                raise UserError(f"cannot connect to tcp:{remote.host}:{remote.port}: {exc.strerror or exc}",
+                                hint="give the autopilot's address as tcp:HOST:PORT") from None
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._conn = conn
+        self._conn_peer = self.peer = conn.getpeername()[:2]
+        self.local = Endpoint(*conn.getsockname()[:2], "tcp")
+        self.connections = 1
+        self._owns_tlog = tlog is not None and not isinstance(tlog, TlogWriter)
+        self.tlog = open_tlog(tlog)
+
+    def recv_split(self, timeout: float | None = 0.0) -> list[tuple]:
+        """Checked, undecoded frames of one read (waiting up to timeout s); [] if none or disconnected."""
+        conn = self._conn
+        if conn is None:
+            if timeout:
+                time.sleep(timeout)
+            return []
+        try:
+            ready, _, _ = select.select([conn], [], [], timeout)
+        except (OSError, ValueError):
+            return []
+        if not ready:
+            return []
+        try:
+            data = conn.recv(READ_SIZE, socket.MSG_DONTWAIT)
+        except (BlockingIOError, InterruptedError, TimeoutError):
+            return []
+        except OSError as exc:
+            self._drop(exc.strerror or type(exc).__name__)
+            return []
+        if not data:
+            self._drop("the peer closed the connection")
+            return []
+        return self._accept_bytes(data)
+
+    _decode = UdpLink._decode
+
+    def recv(self, timeout: float | None = 0.0) -> list:
+        """Messages of one read, waiting up to timeout s; [] if none."""
+        return self._decode(self.recv_split(timeout))
+
+    def drain(self, max_reads: int = 1000) -> list:
+        """All messages already received (no waiting), up to max_reads reads."""
+        out: list = []
+        for _ in range(max_reads):
+            frames = self.recv_split(0.0)
+            if not frames:
+                break
+            out.extend(self._decode(frames))
+        return out
+
+    def fileno(self) -> int:
+        """The connection's descriptor (-1 once it is gone)."""
+        return self._conn.fileno() if self._conn is not None else -1
+
+    @property
+    def closed(self) -> bool:
+        """True once close() was called."""
+        return self._closed
+
+    def close(self) -> None:
+        """Close the connection (and the tlog if this link opened it)."""
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if not self._closed and self._owns_tlog and self.tlog is not None:
+            self.tlog.close()
+        self._closed = True
+
+    def __repr__(self) -> str:
+        return f"TcpClientLink(local={self.local}, peer={self._conn_peer})"

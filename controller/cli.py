@@ -32,10 +32,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="controller (default backstepping)")
     p.add_argument("--hil", default="udp:127.0.0.1:4560", metavar="udp:HOST:PORT",
                    help="the SITL's HIL address (default udp:127.0.0.1:4560)")
-    p.add_argument("--autopilot", default=None, metavar="udp:HOST:PORT",
+    p.add_argument("--autopilot", default=None, metavar="udp:HOST:PORT|tcp:HOST:PORT",
                    help="fly through a real autopilot's offboard link instead of the HIL link: PX4 "
-                        "(quadsr px4 instance N: udp:127.0.0.1:14580+N) in OFFBOARD, the controller's "
+                        "(quadsr px4 instance N: udp:127.0.0.1:14580+N) in OFFBOARD, or ArduCopter "
+                        "(quadsr ardupilot -I N: tcp:127.0.0.1:5760+10N) in GUIDED, the controller's "
                         "attitude and collective thrust as SET_ATTITUDE_TARGET (backstepping only)")
+    p.add_argument("--autopilot-type", default=None, metavar="px4|ardupilot",
+                   help="which autopilot --autopilot is (default: ardupilot for tcp:, px4 for udp:)")
     p.add_argument("--truth", default=None, metavar="FILE.tlog",
                    help="with --autopilot: quadsr's truth log (quadsr px4's WORK/truth.tlog) for the metrics "
                         "(default: the autopilot's estimate)")
@@ -79,9 +82,15 @@ def _fly_offboard(args: argparse.Namespace, controller: Any, trajectory: Any, ve
                   out: Path) -> int:
     """`quadsr fly --autopilot`: the flight through PX4's OFFBOARD mode; exit 0, 1 (crash), 3 (link), 4."""
     from bridge.link import parse_endpoint
+    from bridge.stream_link import is_tcp_address, parse_tcp_endpoint
+    from controller.guided_companion import GuidedCompanion
     from controller.offboard_companion import OffboardCompanion, OffboardSettings
 
-    parse_endpoint(args.autopilot)
+    tcp = is_tcp_address(args.autopilot)
+    parse_tcp_endpoint(args.autopilot) if tcp else parse_endpoint(args.autopilot)
+    kind = args.autopilot_type or ("ardupilot" if tcp else "px4")
+    if kind not in ("px4", "ardupilot"):
+        raise UserError(f"--autopilot-type {kind!r} is not px4 or ardupilot", hint="give px4 or ardupilot")
     if args.controller != "backstepping":
         raise UserError(f"--autopilot flies the backstepping controller only, not {args.controller!r}",
                         hint="drop --controller, or fly the baselines over --hil")
@@ -90,14 +99,18 @@ def _fly_offboard(args: argparse.Namespace, controller: Any, trajectory: Any, ve
         raise UserError(f"--truth {truth} does not exist", hint="give quadsr px4's WORK/truth.tlog")
     settings = OffboardSettings(autopilot=args.autopilot, duration=duration, truth=truth,
                                 connect_timeout=max(args.connect_timeout, 30.0))
-    print(f"quadsr fly: {controller.name} on {trajectory.name} for {duration:g} s through PX4 OFFBOARD at "
+    flight = GuidedCompanion if kind == "ardupilot" else OffboardCompanion
+    companion = flight(controller, trajectory, vehicle, settings)
+    mode = f"{companion.flavour.name} {companion.flavour.offboard.name}"
+    print(f"quadsr fly: {controller.name} on {trajectory.name} for {duration:g} s through {mode} at "
           f"{args.autopilot}, output in {out}", flush=True)
-    result = OffboardCompanion(controller, trajectory, vehicle, settings).fly(out)
+    result = companion.fly(out)
     m = result.metrics
+    source = "truth" if truth else f"{companion.flavour.name} estimate"
     if m is not None:
         after = "n/a" if m.rms_after_5s_m is None else f"{m.rms_after_5s_m * 1000:.2f} mm"
         print(f"quadsr fly: {result.steps} setpoints, RMS {m.rms_m:.4f} m, RMS after 5 s {after}, final "
-              f"{m.final_m * 1000:.2f} mm ({'truth' if truth else 'PX4 estimate'})", flush=True)
+              f"{m.final_m * 1000:.2f} mm ({source})", flush=True)
     print(f"quadsr fly: wrote {', '.join(str(p) for p in result.files.values())}", flush=True)
     if result.completed:
         return 0

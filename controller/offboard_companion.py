@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from bridge.messages import mavlink
-from bridge.offboard import PX4, OffboardLink
+from bridge.offboard import PX4, AutopilotFlavour, OffboardLink
 from bridge.px4_thrust import fit_thrust_model, normalised_thrust
 from bridge.rotations import euler_from_quaternion, quaternion_from_euler
 from bridge.tlog import TlogWriter, read_tlog
@@ -55,6 +55,8 @@ class OffboardSettings:
 class OffboardCompanion(Companion):
     """One flight of the backstepping controller through an autopilot's OFFBOARD mode (see module doc)."""
 
+    flavour: AutopilotFlavour = PX4  # whose modes and messages (controller.guided_companion: ArduPilot)
+
     def __init__(self, controller: Controller, trajectory: Trajectory, vehicle: VehicleConfig,
                  settings: OffboardSettings):
         super().__init__(controller, trajectory, vehicle, FlightSettings(duration=settings.duration,
@@ -80,7 +82,7 @@ class OffboardCompanion(Companion):
         files = {"tlog": out / "flight.tlog", "steps": out / "steps.csv"}
         tlog = TlogWriter(files["tlog"])
         log = StepLog(files["steps"])
-        link = OffboardLink(s.autopilot, PX4, tlog)
+        link = OffboardLink(s.autopilot, self.flavour, tlog, connect_timeout=s.connect_timeout)
         completed = crashed = False
         message = ""
         t0_ms = None
@@ -89,8 +91,8 @@ class OffboardCompanion(Companion):
             if not message:
                 try:
                     t0_ms, completed, crashed, message = self._loop(link, log)
-                finally:  # also on Ctrl-C: PX4 holds where the flight ended instead of a loss failsafe
-                    link.set_mode(PX4.hold)
+                finally:  # also on Ctrl-C: the autopilot holds where the flight ended, no loss failsafe
+                    link.set_mode(self.flavour.hold)
         finally:
             link.close()
             tlog.close()
@@ -143,15 +145,17 @@ class OffboardCompanion(Companion):
         in_offboard = False
         while True:
             if not link.poll(0.05) and time.monotonic() - st.last_heard > s.link_timeout:
-                return t0_ms, False, False, (f"link lost: nothing from PX4 at {s.autopilot} for "
-                                             f"{s.link_timeout:g} s")
-            if link.in_mode(PX4.offboard):
+                return t0_ms, False, False, (f"link lost: nothing from {self.flavour.name} at {s.autopilot} "
+                                             f"for {s.link_timeout:g} s")
+            if link.in_mode(self.flavour.offboard):
                 in_offboard = True
             elif in_offboard:
-                return t0_ms, False, False, (f"PX4 left OFFBOARD (custom mode {st.custom_mode:#x}): its "
-                                             f"offboard-loss failsafe or a pilot/GCS switch{_said(link)}")
+                f = self.flavour
+                return t0_ms, False, False, (f"{f.name} left {f.offboard.name} (custom mode "
+                                             f"{st.custom_mode:#x}): its offboard-loss failsafe or a "
+                                             f"pilot/GCS switch{_said(link)}")
             if not st.armed and in_offboard:
-                return t0_ms, False, False, f"PX4 disarmed{_said(link)}"
+                return t0_ms, False, False, f"{self.flavour.name} disarmed{_said(link)}"
             if last_ms >= 0 and st.time_boot_ms - last_ms > OFFBOARD_LOSS_MS:
                 return t0_ms, False, False, (
                     f"no setpoint for {(st.time_boot_ms - last_ms) * 1e-3:.1f} s of PX4's clock (this "
@@ -213,5 +217,5 @@ def _result_name(result: int | None) -> str:
 
 
 def _said(link: OffboardLink) -> str:
-    texts = link.state.status_texts[-3:]
-    return ("; PX4 said: " + " | ".join(texts)) if texts else ""
+    texts = list(dict.fromkeys(link.state.status_texts))[-3:]  # the newest three distinct texts
+    return (f"; {link.flavour.name} said: " + " | ".join(texts)) if texts else ""
