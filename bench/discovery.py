@@ -68,7 +68,7 @@ CASES: tuple[Case, ...] = (
     Case("rotor drag", Effects(rotor_drag=2e-4)),
     Case("weak rotor 3 (-8%)", Effects(rotor_scale=(1.0, 1.0, 0.92, 1.0))),
     Case("ground effect", Effects(ground_effect=0.08), height=(0.3, 3.0)),
-    Case("frame drag |v|v", Effects(frame_drag=0.02)),
+    Case("frame drag v abs(v)", Effects(frame_drag=0.02)),
     Case("linear thrust", Effects(linear_thrust=4e-3, quadratic_thrust=False)),
     Case("all effects", Effects(rotor_drag=2e-4, rotor_scale=(1.0, 1.0, 0.92, 1.0), ground_effect=0.08,
                                 frame_drag=0.02, linear_thrust=1e-3), height=(0.3, 3.0)),
