@@ -195,6 +195,14 @@ def _add_row_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="no airborne detection: keep every complete row (ground rows too)",
     )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="rate of the common timeline every topic is interpolated onto (default: the log's natural one, "
+        "e.g. ATT's for DataFlash)",
+    )
 
 
 def _output_path(text: str, flag: str) -> Path:
@@ -217,7 +225,8 @@ def _load(
     windows = [parse_window(w) for w in (getattr(args, "window", None) or [])]
     airborne = not getattr(args, "all_rows", False)
     dataset = load_datasets(
-        logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne
+        logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne,
+        rate_hz=getattr(args, "rate", None),
     )
     for line in dataset.segments:
         print(line, file=sys.stderr)

@@ -53,7 +53,7 @@ from identification.targets import (
 
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 MOTOR_FUNCTIONS = (33, 34, 35, 36)  # SERVOn_FUNCTION of Motor1..Motor4
-WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "EKF1", "POS", "ESC", "RCOU", "BAT", "EV")
+WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "EKF1", "POS", "ESC", "RCOU", "BAT", "EV", "ARM")
 EV_ARMED, EV_DISARMED = 10, 11  # EV Id of ArduCopter's ARMED and DISARMED events
 
 
@@ -198,14 +198,23 @@ def _rcou_stream(
 
 
 def _aux_streams(msgs: dict[str, list[Any]], imu: list[Any], path: Path) -> dict[str, Stream]:
-    """Side columns for segmentation and the motor model: armed (EV), voltage (BAT), accel_dev (IMU)."""
+    """Side columns for segmentation and the motor model: armed (EV, ARM), voltage (BAT), accel_dev (IMU).
+
+    The arming state before the first arming event is the opposite of that event: ArduCopter starts a log at
+    arming (LOG_DISARMED 0), so a log whose first event is a disarm was armed from its start.
+    """
     out = {}
-    events = [m for m in msgs["EV"] if getattr(m, "Id", None) in (EV_ARMED, EV_DISARMED)]
+    events = [(float(t), 1.0 if m.Id == EV_ARMED else 0.0)
+              for m, t in zip(msgs["EV"], _times(msgs["EV"], path) if msgs["EV"] else [], strict=True)
+              if getattr(m, "Id", None) in (EV_ARMED, EV_DISARMED)]
+    arm = [m for m in msgs["ARM"] if hasattr(m, "ArmState")]  # ArduPilot 4.1 and newer
+    events += [(float(t), 1.0 if m.ArmState else 0.0) for m, t in zip(arm, _times(arm, path), strict=True)]
     if events:
-        armed = np.array([1.0 if m.Id == EV_ARMED else 0.0 for m in events])
-        t = _times(events, path)
+        events.sort()
+        t = np.array([e[0] for e in events])
+        armed = np.array([e[1] for e in events])
         out["armed"] = Stream(
-            "EV", np.concatenate(([0.0], t)), np.concatenate(([0.0], armed)), "hold", np.inf
+            "EV", np.concatenate(([0.0], t)), np.concatenate(([1.0 - armed[0]], armed)), "hold", np.inf
         )
     bat = [m for m in msgs["BAT"] if getattr(m, "Inst", getattr(m, "Instance", 0)) == 0]
     if bat and hasattr(bat[0], "Volt"):
