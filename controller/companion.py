@@ -30,6 +30,7 @@ from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from controller.estimator import EstimatorSettings, StateEstimator
 from controller.metrics import FlightMetrics, compute_metrics, write_metrics
 from controller.plugin import Controller, Reference, Trajectory, VehicleState
+from controller.reference_shaping import GovernorSettings, TakeoffSettings, shaped_reference
 
 STATE_SOURCES = ("truth", "sensors")
 DEFAULT_HIL = "udp:127.0.0.1:4560"
@@ -57,6 +58,9 @@ class FlightSettings:
     connect_timeout: float = 10.0  # s to wait for the SITL's first step
     progress: bool = True
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
+    # reference shaping (controller.reference_shaping), for every controller: None turns a part off
+    takeoff: TakeoffSettings | None = field(default_factory=TakeoffSettings)
+    governor: GovernorSettings | None = field(default_factory=GovernorSettings)
 
 
 @dataclass
@@ -124,6 +128,7 @@ class Companion:
         self.estimator = StateEstimator(vehicle, self.settings.estimator) if sensors else None
         self._last_speeds = np.zeros(4)
         self._last_state: VehicleState | None = None
+        self.flown: Any = None  # the reference as flown (take-off phase, governor), set at the first step
 
     def feedback(self, obs: Observation) -> VehicleState:
         """The state fed back to the controller for this observation (truth or estimate)."""
@@ -169,11 +174,15 @@ class Companion:
 
                 progress = tqdm(total=n_steps, unit="step", desc=f"{self.controller.name} "
                                 f"{getattr(self.trajectory, 'name', '')}", file=sys.stderr, mininterval=0.5)
+            flown: Any = None
             for k in range(n_steps):
                 start = time.perf_counter()
                 t = obs.t - t0
                 state = self.feedback(obs)
-                ref: Reference = self.trajectory.reference(t)
+                if flown is None:  # the take-off starts where the vehicle stands
+                    flown = self.flown = shaped_reference(self.trajectory, state.xi[0:3], float(state.xi[8]),
+                                                          s.takeoff, s.governor)
+                ref: Reference = flown.reference(t)
                 c0 = time.perf_counter()
                 cmd = self.controller.update(t, state, ref)
                 control = time.perf_counter() - c0
