@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -220,6 +221,10 @@ class BacksteppingController:
     def __init__(self, model: Any, vehicle: Any = None, gains: BacksteppingGains | None = None, *,
                  w_max: float | None = None):
         exprs: Mapping[str, sympy.Expr] = model.expressions if hasattr(model, "expressions") else model
+        source = getattr(model, "source", None)
+        # what the flight's figures and tables say this controller flew on
+        self.model_label = f"{getattr(model, 'kind', 'given')} model" + \
+            (f" {Path(source).name}" if source else "")
         if w_max is None:
             if vehicle is None:
                 raise ValueError("give the vehicle (for its motor curve) or w_max")

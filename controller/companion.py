@@ -114,6 +114,12 @@ def _tilt(phi: float, theta: float) -> float:
     return math.acos(max(-1.0, min(1.0, math.cos(phi) * math.cos(theta))))
 
 
+def flight_label(controller: Controller) -> str:
+    """The controller's name with the model it flies on, e.g. 'backstepping on true-model true-model.yaml'."""
+    model = getattr(controller, "model_label", "")
+    return f"{controller.name} ({model})" if model else f"{controller.name} (no model)"
+
+
 class Companion:
     """One flight of a controller along a trajectory against a SITL over its HIL link (see module doc)."""
 
@@ -258,7 +264,7 @@ class Companion:
         files["metrics_md"], files["metrics_csv"] = write_metrics(metrics, out)
         from controller.plots import path3d_figure, tracking_figure
 
-        title = f"{metrics.controller} on {metrics.trajectory}"
+        title = f"{flight_label(self.controller)} on {metrics.trajectory}"
         files["tracking"] = tracking_figure(t, pos, ref_p, psi, data[:, _col("ref_yaw")],
                                             out / "tracking.png", title)
         files["path3d"] = path3d_figure(pos, ref_p, out / "path3d.png", title)

@@ -125,7 +125,7 @@ class TimeScalingGovernor:
         self.tau = 0.0
         self.scale = self.start_scale
         self.scale_rate = 0.0
-        self.min_scale = 1.0  # the smallest s of the flight so far
+        self.min_feasible = 1.0  # the smallest s the limits allowed so far (1: the reference was feasible)
         self._t: float | None = None
 
     def feasible_scale(self, tau: float) -> float:
@@ -151,6 +151,7 @@ class TimeScalingGovernor:
         if self._t is not None and t > self._t:
             dt = t - self._t
             target = self.feasible_scale(self.tau)
+            self.min_feasible = min(self.min_feasible, target)
             step = max(-g.rate * dt, min(g.rate * dt, target - self.scale))
             if target < self.scale - g.rate * dt:
                 step = target - self.scale  # slowing down may not wait: the limits come first
@@ -158,10 +159,11 @@ class TimeScalingGovernor:
             self.tau += (self.scale + 0.5 * step) * dt
             self.scale += step
         elif self._t is None:
-            self.scale = min(self.start_scale, self.feasible_scale(0.0))
+            target = self.feasible_scale(0.0)
+            self.min_feasible = min(self.min_feasible, target)
+            self.scale = min(self.start_scale, target)
             self.scale_rate = 0.0
         self._t = t
-        self.min_scale = min(self.min_scale, self.scale)
         ref = self.inner.reference(self.tau)
         s, sd = self.scale, self.scale_rate
         v, a = np.asarray(ref.velocity, float), np.asarray(ref.acceleration, float)
@@ -184,3 +186,20 @@ def shaped_reference(trajectory: Trajectory, start: np.ndarray | list[float], st
     if governor is not None:
         inner = TimeScalingGovernor(trajectory, governor, start_scale=0.0 if climb else 1.0)
     return TakeoffTrajectory(inner, start, start_yaw, takeoff) if climb else inner
+
+
+def describe_shaping(flown: Any) -> list[str]:
+    """Lines saying what the take-off phase and the governor did in a flight (nothing if they did nothing)."""
+    lines = []
+    governor = flown
+    if isinstance(flown, TakeoffTrajectory):
+        start = ", ".join(f"{v:.2f}" for v in flown.start)
+        target = ", ".join(f"{v:.2f}" for v in flown.target)
+        lines.append(f"take-off phase: {flown.duration:.2f} s from ({start}) to the first point ({target}) "
+                     "m NED")
+        governor = flown.inner
+    if isinstance(governor, TimeScalingGovernor) and governor.min_feasible < 0.999:
+        lines.append(f"governor: the reference was beyond the limits and was flown at down to "
+                     f"{governor.min_feasible:.2f} of its speed (reference time {governor.tau:.2f} s at the "
+                     "end)")
+    return lines
