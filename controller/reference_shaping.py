@@ -54,6 +54,7 @@ class GovernorSettings:
     rate: float = 0.5  # 1/s, largest |s'|
     lookahead: float = 1.5  # s of reference time checked ahead of tau
     samples: int = 7  # points in the look-ahead window
+    spin_up_speed: float = 2.0  # m/s: a reference starting faster than this is spun up from s = 0
 
 
 def min_jerk(t: float, duration: float) -> tuple[float, float, float, float, float]:
@@ -179,12 +180,13 @@ def shaped_reference(trajectory: Trajectory, start: np.ndarray | list[float], st
     """The trajectory as the companion flies it: governed (if settings are given), behind a take-off phase
     (if settings are given and the first point is in the air). After a take-off the vehicle is at rest on
     the first point, so the governor spins the reference up from s = 0 (a circle starting at 4.8 m/s is
-    not a velocity step)."""
-    first_z = float(trajectory.reference(0.0).position[2])
-    climb = takeoff is not None and float(start[2]) - first_z > takeoff.min_gap
+    not a velocity step); so it does for a reference starting faster than spin_up_speed."""
+    first = trajectory.reference(0.0)
+    climb = takeoff is not None and float(start[2]) - float(first.position[2]) > takeoff.min_gap
     inner: Any = trajectory
     if governor is not None:
-        inner = TimeScalingGovernor(trajectory, governor, start_scale=0.0 if climb else 1.0)
+        fast_start = float(np.linalg.norm(first.velocity)) > governor.spin_up_speed
+        inner = TimeScalingGovernor(trajectory, governor, start_scale=0.0 if climb or fast_start else 1.0)
     return TakeoffTrajectory(inner, start, start_yaw, takeoff) if climb else inner
 
 
