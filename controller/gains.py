@@ -61,7 +61,7 @@ class BacksteppingGains:
     # paper's law exactly)
     observer_rate: float = 10.0
     observer_angular_rate: float = 10.0
-    observer_max_accel: float = 3.0  # m/s^2, clamp of each translational estimate (+-30 % of hover thrust)
+    observer_max_accel: float = 4.0  # m/s^2, clamp of each translational estimate (40 % of g)
     observer_max_angular: float = 5.0  # rad/s^2, clamp of each angular estimate
     # consistency gate [rad/s]: the estimate is held over a step whose commanded rotor speeds saturate or
     # differ from the measured ones by more than this (the model cannot predict a step the motors lag
