@@ -27,7 +27,7 @@ def tracking_figure(
     names = ("x [m]", "y [m]", "z [m] (NED, down)", "psi [rad]")
     actual = [position[:, 0], position[:, 1], position[:, 2], yaw]
     desired = [position_desired[:, 0], position_desired[:, 1], position_desired[:, 2], yaw_desired]
-    for ax, name, a, d in zip(axes, names, actual, desired, strict=True):
+    for ax, name, a, d in zip(axes[:4], names, actual, desired, strict=True):
         ax.plot(t, d, "--", color="tab:red", lw=1.4, label="desired")
         ax.plot(t, a, "-", color="tab:blue", lw=1.1, label="actual")
         ax.set_ylabel(name)
