@@ -39,15 +39,20 @@ class HoldSegment:
 
 
 @dataclass(frozen=True)
-class RampSegment:
-    """A straight line at constant speed from `start` to `end` [m, NED] over `duration` [s], yaw [rad]
-    likewise; its velocity jumps at both ends (a ramp, not a smooth move)."""
+class _Leg:
+    """From `start` to `end` [m, NED] and `start_yaw` to `end_yaw` [rad] over `duration` [s]."""
 
     start: tuple[float, float, float]
     end: tuple[float, float, float]
     start_yaw: float
     end_yaw: float
     duration: float
+
+
+@dataclass(frozen=True)
+class RampSegment(_Leg):
+    """A straight line at constant speed from `start` to `end` [m, NED] over `duration` [s], yaw [rad]
+    likewise; its velocity jumps at both ends (a ramp, not a smooth move)."""
 
     def values(self, t: float) -> list[float]:
         """The 18 numbers at tau [s]."""
@@ -59,14 +64,8 @@ class RampSegment:
 
 
 @dataclass(frozen=True)
-class MinJerkSegment:
+class MinJerkSegment(_Leg):
     """A rest-to-rest minimum-jerk (quintic) move from `start` to `end` [m, NED] over `duration` [s]."""
-
-    start: tuple[float, float, float]
-    end: tuple[float, float, float]
-    start_yaw: float
-    end_yaw: float
-    duration: float
 
     def values(self, t: float) -> list[float]:
         """The 18 numbers at tau [s]: continuous in position, velocity and acceleration at both ends."""
