@@ -59,15 +59,20 @@ def settle_time(t: np.ndarray, error: np.ndarray, tolerance: float = SETTLE_TOLE
     return float(t[last + 1])
 
 
-def overshoot(position: np.ndarray, position_desired: np.ndarray) -> float:
-    """How far [m] the vehicle went past the reference along the direction from its start to the reference's
-    first point (a take-off from the ground: the height above the reference); 0 when it never did."""
+def overshoot(position: np.ndarray, position_desired: np.ndarray, start_gap: float = 0.1) -> float:
+    """How far [m] the vehicle went past the reference along the direction it was first sent: from its start
+    to the first reference point more than start_gap [m] away (a take-off phase starts at the vehicle; for a
+    take-off this is the height above the reference); 0 when it never did."""
     p = np.asarray(position, dtype=float)
     r = np.asarray(position_desired, dtype=float)
-    u = r[0] - p[0]
-    n = float(np.linalg.norm(u))
-    if p.shape[0] == 0 or n < 1e-9:
+    if p.shape[0] == 0:
         return 0.0
+    gaps = np.linalg.norm(r - p[0], axis=1)
+    away = np.flatnonzero(gaps > start_gap)
+    if away.size == 0:
+        return 0.0
+    u = r[away[0]] - p[0]
+    n = float(np.linalg.norm(u))
     past = (p - r) @ (u / n)
     past = past[np.isfinite(past)]
     return float(max(0.0, np.max(past))) if past.size else 0.0
