@@ -6,6 +6,11 @@ throttles through the vehicle's motor curve and answer the step's HIL_SENSOR. Ev
 in DIR/flight.tlog; every step is a row of DIR/steps.csv (flushed each simulated second). At the end (or when
 the link is lost) DIR gets metrics.md, metrics.csv, tracking.png and path3d.png.
 
+The reference flown is the trajectory shaped by controller.reference_shaping (for every controller): a
+take-off phase when it starts in the air, a time-scaling governor when it is beyond the vehicle's limits
+(`FlightSettings.takeoff` / `.governor`; None turns one off). It is built at the first step from the
+fed-back position, and the figures and metrics compare the vehicle with it.
+
 Lost link: if no sensor message arrives for `link_timeout` (0.5 s) the companion stops commanding and the
 flight ends with completed = False and a message saying so (the CLI exits non-zero).
 """
