@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-takeoff", action="store_true",
                    help="no take-off phase (by default a reference starting in the air is preceded by a "
-                        "minimum-jerk climb from where the vehicle stands to its first point)")
+                        "minimum-snap climb from where the vehicle stands to its first point)")
     p.add_argument("--no-governor", action="store_true",
                    help="no time-scaling governor (by default a reference beyond the vehicle's limits is "
                         "flown slower along the same path)")

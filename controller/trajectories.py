@@ -37,7 +37,7 @@ from bridge.errors import UserError
 from bridge.yaml_file import load_yaml_file
 from controller.plugin import Reference, reference_from_values
 from controller.reference_shaping import min_jerk_duration
-from controller.trajectory_segments import HoldSegment, MinJerkSegment, PiecewiseTrajectory, RampSegment
+from controller.trajectory_segments import HoldSegment, MoveSegment, PiecewiseTrajectory, RampSegment
 
 TRAJECTORY_DIR = Path(__file__).resolve().parent / "trajectories"
 BUILTIN = ("case1", "case2")
@@ -51,9 +51,9 @@ _AXES = ("x", "y", "z", "yaw")
 _TOP_KEYS = {"name", "description", "duration", "expressions", "waypoints", "segments", "max_speed",
              "max_acceleration", "interpolation"}
 _KINDS = ("expressions", "waypoints", "segments")
-INTERPOLATIONS = ("quintic", "min-jerk")
+INTERPOLATIONS = ("quintic", "min-jerk", "min-snap")
 SEGMENT_KINDS = ("hold", "step", "ramp", "move", "expressions")
-# the share of max_speed / max_acceleration that min-jerk waypoint legs without times are planned to
+# the share of max_speed / max_acceleration that min-jerk / min-snap legs without times are planned to
 TIME_ALLOCATION_MARGIN = 0.8
 _CHECK_SAMPLES = 2001
 # A reference needing more than this is refused unless the file raises the limit (35 deg tilt ~ 6.9 m/s^2).
@@ -236,8 +236,8 @@ def trajectory_from_dict(data: Any, where: str) -> UserTrajectory:
         interp = data.get("interpolation", "quintic")
         if interp not in INTERPOLATIONS:
             raise UserError(f"{where}: key 'interpolation' must be 'quintic' (C4 quintic spline through the "
-                            f"waypoints) or 'min-jerk' (a rest-to-rest minimum-jerk leg between each two), "
-                            f"got {interp!r}")
+                            f"waypoints), 'min-jerk' or 'min-snap' (a rest-to-rest minimum-jerk or -snap leg "
+                            f"between each two), got {interp!r}")
         traj = _waypoint_trajectory(data["waypoints"], where, name, description, duration, interp, limits)
     if "interpolation" in data and kind != "waypoints":
         raise UserError(f"{where}: key 'interpolation' only applies to 'waypoints'")
@@ -301,13 +301,14 @@ def _waypoint_trajectory(raw: Any, where: str, name: str, description: str, dura
         if bad:
             raise UserError(f"{where}: unknown key '{key}.{bad[0]}'", hint="known keys: t, position, yaw")
         t = wp.get("t")
-        if t is None and interpolation == "min-jerk":
+        if t is None and interpolation != "quintic":
             times.append(None)
         else:
             if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
                 raise UserError(f"{where}: key '{key}.t' must be a time >= 0 in s, got {t!r}",
-                                hint="with interpolation: min-jerk the times may be left out (then every "
-                                     "waypoint's): they are allocated from max_speed and max_acceleration")
+                                hint="with interpolation min-jerk or min-snap the times may be left out "
+                                     "(every waypoint's): they are allocated from max_speed and "
+                                     "max_acceleration")
             last = next((v for v in reversed(times) if v is not None), None)
             if last is not None and t <= last:
                 raise UserError(f"{where}: key '{key}.t' = {t} is not after the previous waypoint's "
@@ -331,10 +332,11 @@ def _waypoint_trajectory(raw: Any, where: str, name: str, description: str, dura
         if times[0] is None:
             dist = float(np.linalg.norm(np.subtract(b, a)))
             leg = min_jerk_duration(dist, TIME_ALLOCATION_MARGIN * lim["max_speed"],
-                                    TIME_ALLOCATION_MARGIN * lim["max_acceleration"], shortest=0.5)
+                                    TIME_ALLOCATION_MARGIN * lim["max_acceleration"], shortest=0.5,
+                                    profile=interpolation)
         else:
             leg = float(times[k + 1]) - float(times[k])  # type: ignore[arg-type]
-        legs.append(MinJerkSegment(tuple(a), tuple(b), yaws[k], yaws[k + 1], leg))  # type: ignore[arg-type]
+        legs.append(MoveSegment(tuple(a), tuple(b), yaws[k], yaws[k + 1], leg, interpolation))  # type: ignore
         durations.append(leg)
     if times[0] not in (None, 0.0):
         legs.insert(0, HoldSegment(tuple(positions[0]), yaws[0]))  # type: ignore[arg-type]
@@ -346,7 +348,7 @@ def _waypoint_trajectory(raw: Any, where: str, name: str, description: str, dura
 def _segment_trajectory(raw: Any, where: str, name: str, description: str,
                         duration: float | None) -> PiecewiseTrajectory:
     """Segments: hold (at position, default the previous end), step (jump to position and hold), ramp
-    (constant speed to position), move (minimum-jerk to position), expressions (x, y, z, yaw in t since the
+    (constant speed to position), move (minimum-snap to position), expressions (x, y, z, yaw in t since the
     segment's start); each with a duration [s] and an optional yaw [rad]."""
     if not isinstance(raw, list) or not raw:
         raise UserError(f"{where}: key 'segments' must be a list of segments",
@@ -396,7 +398,7 @@ def _segment_trajectory(raw: Any, where: str, name: str, description: str,
             elif kind == "ramp":
                 segments.append(RampSegment(tuple(end), tuple(target), start_yaw, yaw, dur))  # type: ignore
             else:
-                segments.append(MinJerkSegment(tuple(end), tuple(target), start_yaw, yaw, dur))  # type: ignore
+                segments.append(MoveSegment(tuple(end), tuple(target), start_yaw, yaw, dur))  # type: ignore
             end = target
         durations.append(dur)
         kinds.append(str(kind))

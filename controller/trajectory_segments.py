@@ -1,5 +1,6 @@
 """Piecewise references users write: holds, steps, ramps and formula segments; waypoints joined by
-minimum-jerk legs. Built from YAML by controller.trajectories (which checks the files); evaluated here.
+minimum-jerk or minimum-snap legs. Built from YAML by controller.trajectories (which checks the files);
+evaluated here.
 
 Every segment's `values(tau)` gives the 18 numbers of controller.trajectories (position, velocity,
 acceleration, jerk, snap NED [m, m/s, ...]; yaw [rad], its rate and acceleration) at tau [s] since the
@@ -15,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from controller.plugin import Reference, reference_from_values
-from controller.reference_shaping import min_jerk
+from controller.reference_shaping import PROFILES
 
 
 class SegmentValues(Protocol):
@@ -64,12 +65,15 @@ class RampSegment(_Leg):
 
 
 @dataclass(frozen=True)
-class MinJerkSegment(_Leg):
-    """A rest-to-rest minimum-jerk (quintic) move from `start` to `end` [m, NED] over `duration` [s]."""
+class MoveSegment(_Leg):
+    """A rest-to-rest move from `start` to `end` [m, NED] over `duration` [s]: `profile` min-jerk (quintic,
+    continuous through acceleration when joined) or min-snap (septic, continuous through jerk)."""
+
+    profile: str = "min-snap"
 
     def values(self, t: float) -> list[float]:
-        """The 18 numbers at tau [s]: continuous in position, velocity and acceleration at both ends."""
-        s = min_jerk(t, self.duration)
+        """The 18 numbers at tau [s]: at rest at both ends."""
+        s = PROFILES[self.profile][0](t, self.duration)
         d = [b - a for a, b in zip(self.start, self.end, strict=True)]
         out = [a + s[0] * di for a, di in zip(self.start, d, strict=True)]
         for k in range(1, 5):

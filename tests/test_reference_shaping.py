@@ -151,9 +151,9 @@ def test_aggressive_circle_after_a_takeoff_is_tracked(model, vehicle, plant):
     c = BacksteppingController(model, vehicle)
     shaped = shaped_reference(trajectory_from_dict(CIRCLE, "circle"), [0.0, 0.0, 0.0], 0.0, TakeoffSettings(),
                               GovernorSettings())
-    r = simulate(c, shaped, plant, 14.0)
+    r = simulate(c, shaped, plant, 16.0)
     assert -r.xi[:, 2].min() - 2.0 <= 0.05
-    assert r.rms_after(5.0) < 0.02 and r.max_error_after(9.0) < 1e-3
+    assert r.rms_after(5.0) < 0.005 and r.max_error_after(12.0) < 1e-3  # measured 2.5 mm; spun up by 9 s
 
 
 def test_governor_leaves_a_feasible_reference_alone():
