@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,8 @@ from controller.plugin import Command, Reference, VehicleState, as_floats
 from identification.model_file import TARGET_NAMES
 
 NOMINAL_DT = 0.004  # s, the HIL exchange step (250 Hz)
+NOISE_MEMORY = 1.0  # s, time constant of the model-error observer's innovation-noise estimate
+MIN_NOISE_SAMPLES = 10  # innovations seen before the noise-adaptive observer updates its estimate
 
 
 class ModelErrorObserver:
@@ -60,7 +63,8 @@ class ModelErrorObserver:
     """
 
     def __init__(self, expressions: Mapping[str, sympy.Expr], rate: float, angular_rate: float,
-                 max_accel: float, max_angular: float, hover_speed: float = 0.0):
+                 max_accel: float, max_angular: float, hover_speed: float = 0.0, noise_accel: float = 0.0,
+                 noise_angular: float = 0.0):
         names = TARGET_NAMES if angular_rate > 0.0 else TARGET_NAMES[:3]
         self._accel = None
         self.code = "off"  # its model function: "compiled", "python (why)", or off
@@ -72,18 +76,36 @@ class ModelErrorObserver:
             self.code = "compiled" if state == "native" else f"python ({state})"
         self._rates = ((rate,) * 3 + (angular_rate,) * 3)[: len(names)]
         self._limits = ((max_accel,) * 3 + (max_angular,) * 3)[: len(names)]
+        # noise-adaptive gain: d's noise is about sigma sqrt(k / 2) for a white innovation of std sigma and
+        # a filter gain k, so k is capped at 2 (target / sigma)^2 (target: d's noise std; 0: no cap)
+        self._targets = ((noise_accel,) * 3 + (noise_angular,) * 3)[: len(names)]
+        self._noise_var = [0.0] * 6  # sigma^2 per channel, from the first differences of the innovations
+        self._noise_count = [0] * 6  # innovations differenced so far, per channel
+        self._last_meas: list[float | None] = [None] * 6
+        self.gains_used = [0.0] * 6  # the filter gain per step last used, per channel (for logs and tests)
         self._dt = -1.0
-        self._filters: list[tuple[int, float, float]] = []  # (index, gain 1 - e^(-rate dt) > 0, limit) at _dt
+        # (index, gain 1 - e^(-rate dt) > 0, limit, noise cap 2 target^2) at _dt
+        self._filters: list[tuple[int, float, float, float]] = []
+        self._var_gain = 0.0
         self.reset()
 
     def reset(self) -> None:
-        """Forget the estimate and the last step."""
+        """Forget the estimate and the last step (the noise level learnt is kept: see forget_noise)."""
         self.value = [0.0] * 6  # d: body FRD translational [m/s^2], then angular [rad/s^2]
         self._start: tuple[tuple[float, ...], list[float], list[float]] | None = None
+        self._last_meas = [None] * 6
 
-    def start_step(self, xi: list[float], u: list[float]) -> None:
-        """A step starts at state xi (airborne) with the rotor speeds u [rad/s] just commanded for it."""
-        if self._accel is None:
+    def forget_noise(self) -> None:
+        """Forget the noise level learnt (before a new flight)."""
+        self._noise_var = [0.0] * 6
+        self._noise_count = [0] * 6
+
+    def start_step(self, xi: list[float], u: list[float], consistent: bool = True) -> None:
+        """A step starts at state xi (airborne) with the rotor speeds u [rad/s] just commanded for it;
+        `consistent` False (the consistency gate: motors saturated, or the command far from the measured
+        rotor speeds, so the model cannot say what the vehicle will do this step) holds the estimate."""
+        if self._accel is None or not consistent:
+            self._start = None
             return
         try:
             a = self._accel(*xi, *u)
@@ -118,7 +140,9 @@ class ModelErrorObserver:
             if dt != self._dt:
                 self._dt = dt
                 gains = [1.0 - math.exp(-k * dt) for k in self._rates]
-                self._filters = [(i, k, self._limits[i]) for i, k in enumerate(gains) if k > 0.0]
+                self._filters = [(i, k, self._limits[i], 2.0 * self._targets[i] ** 2)
+                                 for i, k in enumerate(gains) if k > 0.0]
+                self._var_gain = 1.0 - math.exp(-dt / NOISE_MEMORY)
             inv = 1.0 / dt
             mx = (xi[3] - pv[0]) * inv - 0.5 * (a[0] + pa[0])
             my = (xi[4] - pv[1]) * inv - 0.5 * (a[1] + pa[1])
@@ -130,14 +154,29 @@ class ModelErrorObserver:
                 meas += [(xi[9] - pv[3]) * inv - 0.5 * (a[3] + pa[3]),
                          (xi[10] - pv[4]) * inv - 0.5 * (a[4] + pa[4]),
                          (xi[11] - pv[5]) * inv - 0.5 * (a[5] + pa[5])]
-            for i, k, lim in self._filters:
-                x = d[i] + k * (meas[i] - d[i])
+            var, last, av = self._noise_var, self._last_meas, self._var_gain
+            for i, k, lim, cap in self._filters:
+                m = meas[i]
+                if m != m:  # NaN: the model has no value here; keep the estimate
+                    continue
+                prev = last[i]
+                last[i] = m
+                if prev is not None:  # white noise doubles its variance in a first difference
+                    dm = m - prev
+                    n = self._noise_count[i] = self._noise_count[i] + 1
+                    w = 1.0 / n if n * av < 1.0 else av  # the sample mean until the memory is full
+                    var[i] += w * (0.5 * dm * dm - var[i])
+                if cap > 0.0:
+                    if self._noise_count[i] < MIN_NOISE_SAMPLES:
+                        continue  # no noise level yet: hold the estimate
+                    if k * var[i] > cap:
+                        k = cap / var[i]
+                self.gains_used[i] = k
+                x = d[i] + k * (m - d[i])
                 if x > lim:
                     x = lim
                 elif x < -lim:
                     x = -lim
-                elif x != x:  # NaN: the model has no value here; keep the estimate
-                    continue
                 d[i] = x
             if not any(d):
                 return [0.0] * 6, [0.0, 0.0, 0.0]
@@ -172,6 +211,10 @@ class BacksteppingController:
     def __init__(self, model: Any, vehicle: Any = None, gains: BacksteppingGains | None = None, *,
                  w_max: float | None = None):
         exprs: Mapping[str, sympy.Expr] = model.expressions if hasattr(model, "expressions") else model
+        source = getattr(model, "source", None)
+        # what the flight's figures and tables say this controller flew on
+        self.model_label = f"{getattr(model, 'kind', 'given')} model" + \
+            (f" {Path(source).name}" if source else "")
         if w_max is None:
             if vehicle is None:
                 raise ValueError("give the vehicle (for its motor curve) or w_max")
@@ -181,9 +224,12 @@ class BacksteppingController:
         validate_gains(self.gains, "gains")
         self.law: DerivedLaw = derive_law(exprs, self.w_max)
         self.outer_loop = OuterLoop(self.gains, self.law.gravity)
+        self._vertical = self.outer_loop.vertical_limits()
         g = self.gains
+        self._observer_gate = g.observer_gate_speed if g.observer_gate_speed > 0.0 else math.inf
         self.observer = ModelErrorObserver(exprs, g.observer_rate, g.observer_angular_rate,
-                                           g.observer_max_accel, g.observer_max_angular, self.law.hover_speed)
+                                           g.observer_max_accel, g.observer_max_angular, self.law.hover_speed,
+                                           g.observer_noise_accel, g.observer_noise_angular)
         c = self.gains.c_gains
         self._c = c
         self._kz = (1.0 + c[0] * c[4], c[0] + c[4])  # z error dynamics e'' + kz1 e' + kz0 e = 0
@@ -214,6 +260,7 @@ class BacksteppingController:
         """Clear the integrator, the command filter and the warm starts."""
         self.outer_loop.reset()
         self.observer.reset()
+        self.observer.forget_noise()
         law = self.law
         self._q = [0.0, 0.0, law.hover_f[0]][: law.outer.n]
         self._qd = [0.0] * law.outer.n
@@ -258,12 +305,20 @@ class BacksteppingController:
 
         # z and psi channels (their designed second derivatives also feed the outer solve)
         zd, zd1, zd2 = rp[2], rv[2], ra[2]
-        v5 = designed_gamma(c0, c4, zd, zd1, zd2, z, vz) - d2
+        v5 = designed_gamma(c0, c4, zd, zd1, zd2, z, vz)
         e1, de1 = zd - z, zd1 - vz
         k0, k1 = self._kz
         dde1 = -(k0 * e1 + k1 * de1)
         v5_1 = rj[2] + k0 * de1 + k1 * dde1
         v5_2 = rs[2] + k0 * dde1 + k1 * -(k0 * de1 + k1 * dde1)
+        # the z design's vertical acceleration is kept within the outer loop's vertical limits: a large
+        # height error then climbs at the limit and leaves the motors room for the attitude (thrust and
+        # attitude before position), instead of asking for full or zero thrust
+        up, down = self._vertical
+        if v5 < up or v5 > down:
+            v5 = up if v5 < up else down
+            v5_1 = v5_2 = 0.0
+        v5 -= d2
         e4 = _wrap(float(reference.yaw) - psi)
         v8 = designed_gamma(c3, c7, psi + e4, float(reference.yaw_rate),
                             float(reference.yaw_acceleration), psi, dpsi)
@@ -337,7 +392,11 @@ class BacksteppingController:
         self._f = list(f)
         _, speeds, stage = allocate_floats(f, self.w_max)
         if not on_ground:
-            observer.start_step(xi, speeds)
+            gate = self._observer_gate
+            consistent = stage == "none" and abs(speeds[0] - u_meas[0]) <= gate \
+                and abs(speeds[1] - u_meas[1]) <= gate and abs(speeds[2] - u_meas[2]) <= gate \
+                and abs(speeds[3] - u_meas[3]) <= gate
+            observer.start_step(xi, speeds, consistent)
         return Command(
             rotor_speeds=np.array(speeds),
             saturated=stage != "none",
@@ -348,6 +407,7 @@ class BacksteppingController:
                 "gamma_d": gamma_d, "outer_ok": outer_ok, "inner_ok": inner_ok,
                 "limited": limited or tilt_clamped, "on_ground": on_ground,
                 "outer_iterations": sol.iterations, "integral": integral, "model_error": tuple(d),
+                "observer_gains": tuple(observer.gains_used),
                 "allocation": stage,
             },
         )

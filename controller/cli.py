@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -55,6 +56,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--connect-timeout", type=float, default=10.0, metavar="S",
                    help="wait this long for the SITL's first step (default 10 s)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-takeoff", action="store_true",
+                   help="no take-off phase (by default a reference starting in the air is preceded by a "
+                        "minimum-snap climb from where the vehicle stands to its first point)")
+    p.add_argument("--no-governor", action="store_true",
+                   help="no time-scaling governor (by default a reference beyond the vehicle's limits is "
+                        "flown slower along the same path)")
     p.set_defaults(func=run_fly)
 
 
@@ -155,18 +162,29 @@ def run_fly(args: argparse.Namespace) -> int:
     settings = FlightSettings(hil=args.hil, duration=duration, state=args.state,
                               link_timeout=args.link_timeout, connect_timeout=args.connect_timeout,
                               progress=not args.no_progress)
+    if args.no_takeoff:
+        settings = dataclasses.replace(settings, takeoff=None)
+    if args.no_governor:
+        settings = dataclasses.replace(settings, governor=None)
     print(f"quadsr fly: {controller.name} on {trajectory.name} for {duration:g} s, state from {args.state}, "
           f"SITL at {args.hil}, output in {out}", flush=True)
     describe = getattr(controller, "describe", None)
     if describe is not None:
         print(f"quadsr fly: law: {describe()}", flush=True)
-    result = Companion(controller, trajectory, vehicle, settings).fly(out)
+    companion = Companion(controller, trajectory, vehicle, settings)
+    result = companion.fly(out)
+    if companion.flown is not None:
+        from controller.reference_shaping import describe_shaping
+
+        for line in describe_shaping(companion.flown):
+            print(f"quadsr fly: {line}", flush=True)
     m = result.metrics
     if m is not None:
         after = "n/a" if m.rms_after_5s_m is None else f"{m.rms_after_5s_m * 1000:.2f} mm"
         settle = "never" if m.settle_time_s is None else f"{m.settle_time_s:.2f} s"
         print(f"quadsr fly: {result.steps} steps, RMS {m.rms_m:.4f} m, RMS after 5 s {after}, "
-              f"max {m.max_m:.3f} m, final {m.final_m * 1000:.2f} mm, settled within 5 cm at {settle}, "
+              f"max {m.max_m:.3f} m, overshoot {m.overshoot_m * 1000:.1f} mm, "
+              f"final {m.final_m * 1000:.2f} mm, settled within 5 cm at {settle}, "
               f"control step median {m.step_median_us:.0f} us / p99 {m.step_p99_us:.0f} us", flush=True)
     for text in result.sitl_messages:
         print(f"quadsr fly: warning: the SITL said: {text}", flush=True)

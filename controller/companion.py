@@ -6,6 +6,11 @@ throttles through the vehicle's motor curve and answer the step's HIL_SENSOR. Ev
 in DIR/flight.tlog; every step is a row of DIR/steps.csv (flushed each simulated second). At the end (or when
 the link is lost) DIR gets metrics.md, metrics.csv, tracking.png and path3d.png.
 
+The reference flown is the trajectory shaped by controller.reference_shaping (for every controller): a
+take-off phase when it starts in the air, a time-scaling governor when it is beyond the vehicle's limits
+(`FlightSettings.takeoff` / `.governor`; None turns one off). It is built at the first step from the
+fed-back position, and the figures and metrics compare the vehicle with it.
+
 Lost link: if no sensor message arrives for `link_timeout` (0.5 s) the companion stops commanding and the
 flight ends with completed = False and a message saying so (the CLI exits non-zero).
 """
@@ -30,6 +35,7 @@ from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
 from controller.estimator import EstimatorSettings, StateEstimator
 from controller.metrics import FlightMetrics, compute_metrics, write_metrics
 from controller.plugin import Controller, Reference, Trajectory, VehicleState
+from controller.reference_shaping import GovernorSettings, TakeoffSettings, shaped_reference
 
 STATE_SOURCES = ("truth", "sensors")
 DEFAULT_HIL = "udp:127.0.0.1:4560"
@@ -58,6 +64,9 @@ class FlightSettings:
     progress: bool = True
     figures: bool = True  # write tracking.png and path3d.png at the end (campaigns switch them off)
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
+    # reference shaping (controller.reference_shaping), for every controller: None turns a part off
+    takeoff: TakeoffSettings | None = field(default_factory=TakeoffSettings)
+    governor: GovernorSettings | None = field(default_factory=GovernorSettings)
 
 
 @dataclass
@@ -111,6 +120,12 @@ def _tilt(phi: float, theta: float) -> float:
     return math.acos(max(-1.0, min(1.0, math.cos(phi) * math.cos(theta))))
 
 
+def flight_label(controller: Controller) -> str:
+    """The controller's name with the model it flies on, e.g. 'backstepping on true-model true-model.yaml'."""
+    model = getattr(controller, "model_label", "")
+    return f"{controller.name} ({model})" if model else f"{controller.name} (no model)"
+
+
 class Companion:
     """One flight of a controller along a trajectory against a SITL over its HIL link (see module doc)."""
 
@@ -125,6 +140,7 @@ class Companion:
         self.estimator = StateEstimator(vehicle, self.settings.estimator) if sensors else None
         self._last_speeds = np.zeros(4)
         self._last_state: VehicleState | None = None
+        self.flown: Any = None  # the reference as flown (take-off phase, governor), set at the first step
 
     def feedback(self, obs: Observation) -> VehicleState:
         """The state fed back to the controller for this observation (truth or estimate)."""
@@ -171,11 +187,15 @@ class Companion:
                 progress = tqdm(total=n_steps, unit="step", desc=f"{self.controller.name} "
                                 f"{getattr(self.trajectory, 'name', '')}", file=sys.stderr, mininterval=0.5,
                                 disable=None)  # None: no bar when stderr is not a terminal (a pipe, a log)
+            flown: Any = None
             for k in range(n_steps):
                 start = time.perf_counter()
                 t = obs.t - t0
                 state = self.feedback(obs)
-                ref: Reference = self.trajectory.reference(t)
+                if flown is None:  # the take-off starts where the vehicle stands
+                    flown = self.flown = shaped_reference(self.trajectory, state.xi[0:3], float(state.xi[8]),
+                                                          s.takeoff, s.governor)
+                ref: Reference = flown.reference(t)
                 c0 = time.perf_counter()
                 cmd = self.controller.update(t, state, ref)
                 control = time.perf_counter() - c0
@@ -253,7 +273,7 @@ class Companion:
             return metrics
         from controller.plots import path3d_figure, tracking_figure
 
-        title = f"{metrics.controller} on {metrics.trajectory}"
+        title = f"{flight_label(self.controller)} on {metrics.trajectory}"
         files["tracking"] = tracking_figure(t, pos, ref_p, psi, data[:, _col("ref_yaw")],
                                             out / "tracking.png", title)
         files["path3d"] = path3d_figure(pos, ref_p, out / "path3d.png", title)

@@ -30,6 +30,8 @@ class FlightMetrics:
     rms_m: float  # m, RMS of the 3-D position error over the whole flight
     rms_after_5s_m: float | None  # m, RMS of the 3-D position error for t >= 5 s
     max_m: float  # m, largest 3-D position error
+    max_after_5s_m: float | None  # m, largest 3-D position error for t >= 5 s
+    overshoot_m: float  # m, furthest the vehicle went past the reference along the direction it started from
     final_m: float  # m, 3-D position error at the last sample
     settle_time_s: float | None  # s, first time after which the error stays within 5 cm (None: never)
     yaw_rms_rad: float  # rad, RMS of the wrapped yaw error
@@ -55,6 +57,25 @@ def settle_time(t: np.ndarray, error: np.ndarray, tolerance: float = SETTLE_TOLE
     if last == t.size - 1:
         return None
     return float(t[last + 1])
+
+
+def overshoot(position: np.ndarray, position_desired: np.ndarray, start_gap: float = 0.1) -> float:
+    """How far [m] the vehicle went past the reference along the direction it was first sent: from its start
+    to the first reference point more than start_gap [m] away (a take-off phase starts at the vehicle; for a
+    take-off this is the height above the reference); 0 when it never did."""
+    p = np.asarray(position, dtype=float)
+    r = np.asarray(position_desired, dtype=float)
+    if p.shape[0] == 0:
+        return 0.0
+    gaps = np.linalg.norm(r - p[0], axis=1)
+    away = np.flatnonzero(gaps > start_gap)
+    if away.size == 0:
+        return 0.0
+    u = r[away[0]] - p[0]
+    n = float(np.linalg.norm(u))
+    past = (p - r) @ (u / n)
+    past = past[np.isfinite(past)]
+    return float(max(0.0, np.max(past))) if past.size else 0.0
 
 
 def _rms(values: np.ndarray) -> float:
@@ -95,6 +116,8 @@ def compute_metrics(
         rms_m=_rms(finite),
         rms_after_5s_m=_rms(finite[after]) if np.any(after) else None,
         max_m=float(np.max(finite)),
+        max_after_5s_m=float(np.max(finite[after])) if np.any(after) else None,
+        overshoot_m=overshoot(position, position_desired),
         final_m=float(finite[-1]),
         settle_time_s=settle_time(t, finite),
         yaw_rms_rad=_rms(yaw_err),
@@ -117,6 +140,8 @@ _LABELS = {
     "rms_m": ("RMS 3-D position error", "m"),
     "rms_after_5s_m": ("RMS 3-D position error after 5 s", "m"),
     "max_m": ("max 3-D position error", "m"),
+    "max_after_5s_m": ("max 3-D position error after 5 s", "m"),
+    "overshoot_m": ("overshoot past the reference (along the start's approach)", "m"),
     "final_m": ("final 3-D position error", "m"),
     "settle_time_s": ("time to settle within 5 cm (and stay)", "s"),
     "yaw_rms_rad": ("RMS yaw error", "rad"),

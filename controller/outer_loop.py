@@ -18,7 +18,10 @@ What the paper leaves out and a real vehicle needs:
   - the optional extra integral (k_int) integrates only within `integral_zone`, never on the ground, never
     while the command is limited (conditional integration), and its contribution is clamped;
   - the horizontal acceleration is limited so that the tilt stays below max_tilt (tan(tilt) * (g - a_z)),
-    and below ground_tilt while the vehicle is still on the ground.
+    and below ground_tilt while the vehicle is still on the ground; at the limit the feedforward keeps
+    priority and only the feedback is shortened, along its own direction (saturate_feedback), so a large
+    error closes at the best feasible rate instead of settling on a lagging orbit. There is no integrator
+    to wind up (the error clip bounds the k_i term; the model-error observer does not integrate e).
 
 Derivatives a' and a'' for the attitude feedforward come from the reference's jerk and snap plus the ideal
 closed-loop error dynamics (e'' = -(k_p e' + k_i e + k_int I)), so they need no numerical differentiation.
@@ -42,6 +45,25 @@ class OuterCommand:
     accel_rate2: list[float]
     limited: bool  # the tilt/acceleration limit or the error clip was active
     integral: tuple[float, float]  # the k_int integrator state [m s]
+
+
+def saturate_feedback(ffx: float, ffy: float, fbx: float, fby: float, a_max: float) -> tuple[float, float]:
+    """ff + k fb [m/s^2] with |k fb| <= a_max - |ff| (k in [0, 1]); ff scaled to a_max alone if beyond it.
+
+    The feedforward (what the reference needs) keeps priority; the feedback keeps its direction and gets the
+    margin a_max - |ff| that is free in every direction, so the error obeys e'' = -sat(k_p e' + k_i e), a
+    radially symmetric saturated linear feedback of a double integrator, which converges from any error.
+    Scaling the sum instead (or giving the feedback all that is left along its direction) makes the bound
+    depend on the direction: on the aggressive circle that left the vehicle on a lagging orbit, 4 m behind.
+    """
+    ff2 = ffx * ffx + ffy * ffy
+    if not ff2 < a_max * a_max:  # the reference alone is beyond the limit (or NaN): keep its direction
+        n = math.sqrt(ff2)
+        return (ffx * a_max / n, ffy * a_max / n) if n > 0.0 else (0.0, 0.0)
+    fb = math.sqrt(fbx * fbx + fby * fby)
+    margin = a_max - math.sqrt(ff2)
+    k = 1.0 if fb <= margin else margin / fb
+    return ffx + k * fbx, ffy + k * fby
 
 
 class OuterLoop:
@@ -115,8 +137,10 @@ class OuterLoop:
 
         kpx, kpy = self._kp
         kix, kiy = self._ki
-        ax = ref_acc[0] + kpx * evx + kix * ecx + k_int * ix - dx
-        ay = ref_acc[1] + kpy * evy + kiy * ecy + k_int * iy - dy
+        ffx, ffy = ref_acc[0] - dx, ref_acc[1] - dy  # feedforward: the reference's and the model's error
+        fbx = kpx * evx + kix * ecx + k_int * ix  # feedback
+        fby = kpy * evy + kiy * ecy + k_int * iy
+        ax, ay = ffx + fbx, ffy + fby
         up, down = self._vertical
         a_z = up if up > az else az  # min(max(az, up), down), NaN passing as it would there
         if down < a_z:
@@ -125,8 +149,7 @@ class OuterLoop:
         a_h = math.hypot(ax, ay)
         tilt_limited = a_h > a_max
         if tilt_limited:
-            s = a_max / a_h
-            ax, ay = ax * s, ay * s
+            ax, ay = saturate_feedback(ffx, ffy, fbx, fby, a_max)
         limited = clipped or tilt_limited or a_z != az
         self._was_limited = limited or clipped
 

@@ -38,6 +38,13 @@ class Reference:
     yaw_acceleration: float = 0.0
 
 
+def reference_from_values(values: Any) -> Reference:
+    """A Reference from 18 numbers: position, velocity, acceleration, jerk, snap (NED), yaw, rate, accel."""
+    a = np.asarray(values, dtype=float)
+    return Reference(position=a[0:3], velocity=a[3:6], acceleration=a[6:9], jerk=a[9:12], snap=a[12:15],
+                     yaw=float(a[15]), yaw_rate=float(a[16]), yaw_acceleration=float(a[17]))
+
+
 @dataclass(frozen=True)
 class Command:
     """A controller's output: the four motor speeds [rad/s, PX4 order], already within [0, w_max]."""

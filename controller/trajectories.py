@@ -35,7 +35,9 @@ from scipy.interpolate import make_interp_spline
 
 from bridge.errors import UserError
 from bridge.yaml_file import load_yaml_file
-from controller.plugin import Reference
+from controller.plugin import Reference, reference_from_values
+from controller.reference_shaping import min_jerk_duration
+from controller.trajectory_segments import HoldSegment, MoveSegment, PiecewiseTrajectory, RampSegment
 
 TRAJECTORY_DIR = Path(__file__).resolve().parent / "trajectories"
 BUILTIN = ("case1", "case2")
@@ -46,8 +48,13 @@ _FUNCTIONS = {
 }
 _CONSTANTS = {"pi": sympy.pi, "e": sympy.E}
 _AXES = ("x", "y", "z", "yaw")
-_TOP_KEYS = {"name", "description", "duration", "expressions", "waypoints", "max_speed", "max_acceleration",
-             "interpolation"}
+_TOP_KEYS = {"name", "description", "duration", "expressions", "waypoints", "segments", "max_speed",
+             "max_acceleration", "interpolation"}
+_KINDS = ("expressions", "waypoints", "segments")
+INTERPOLATIONS = ("quintic", "min-jerk", "min-snap")
+SEGMENT_KINDS = ("hold", "step", "ramp", "move", "expressions")
+# the share of max_speed / max_acceleration that min-jerk / min-snap legs without times are planned to
+TIME_ALLOCATION_MARGIN = 0.8
 _CHECK_SAMPLES = 2001
 # A reference needing more than this is refused unless the file raises the limit (35 deg tilt ~ 6.9 m/s^2).
 DEFAULT_LIMITS = {"max_speed": 15.0, "max_acceleration": 6.0}
@@ -104,14 +111,6 @@ def _node(node: ast.AST) -> sympy.Expr:
     raise _Bad(f"'{ast.unparse(node)}' is not allowed in a trajectory formula")
 
 
-def _reference_from_row(v: list[float] | np.ndarray) -> Reference:
-    a = np.asarray(v, dtype=float)
-    return Reference(
-        position=a[0:3], velocity=a[3:6], acceleration=a[6:9], jerk=a[9:12], snap=a[12:15],
-        yaw=float(a[15]), yaw_rate=float(a[16]), yaw_acceleration=float(a[17]),
-    )
-
-
 class ExpressionTrajectory:
     """x, y, z [m, NED] and yaw [rad] as formulas in t [s]; sympy derivatives, one lambdified call."""
 
@@ -137,7 +136,7 @@ class ExpressionTrajectory:
 
     def reference(self, t: float) -> Reference:
         """The reference at time t [s] (held at its t = 0 value, at rest, before 0)."""
-        return _reference_from_row(self.values(t))
+        return reference_from_values(self.values(t))
 
 
 class WaypointTrajectory:
@@ -181,7 +180,10 @@ class WaypointTrajectory:
 
     def reference(self, t: float) -> Reference:
         """The reference at time t [s]."""
-        return _reference_from_row(self.values(t))
+        return reference_from_values(self.values(t))
+
+
+UserTrajectory = ExpressionTrajectory | WaypointTrajectory | PiecewiseTrajectory
 
 
 def case1() -> ExpressionTrajectory:
@@ -194,7 +196,7 @@ def case2() -> ExpressionTrajectory:
     return load_trajectory("case2")
 
 
-def load_trajectory(name_or_path: str | os.PathLike[str]) -> ExpressionTrajectory | WaypointTrajectory:
+def load_trajectory(name_or_path: str | os.PathLike[str]) -> UserTrajectory:
     """A built-in trajectory by name (case1, case2) or a YAML file; UserError naming file and key if bad."""
     text = str(name_or_path)
     path = TRAJECTORY_DIR / f"{text}.yaml" if text in BUILTIN else Path(text)
@@ -205,7 +207,7 @@ def load_trajectory(name_or_path: str | os.PathLike[str]) -> ExpressionTrajector
     return trajectory_from_dict(data, str(path))
 
 
-def trajectory_from_dict(data: Any, where: str) -> ExpressionTrajectory | WaypointTrajectory:
+def trajectory_from_dict(data: Any, where: str) -> UserTrajectory:
     """Build and check a trajectory from its YAML mapping; `where` names the file in errors."""
     if not isinstance(data, dict):
         raise UserError(f"{where}: expected a mapping with 'expressions' or 'waypoints'")
@@ -213,9 +215,10 @@ def trajectory_from_dict(data: Any, where: str) -> ExpressionTrajectory | Waypoi
     if unknown:
         raise UserError(f"{where}: unknown key '{unknown[0]}'",
                         hint=f"known keys: {', '.join(sorted(_TOP_KEYS))}")
-    has_e, has_w = "expressions" in data, "waypoints" in data
-    if has_e == has_w:
-        raise UserError(f"{where}: give exactly one of 'expressions' or 'waypoints'")
+    given = [k for k in _KINDS if k in data]
+    if len(given) != 1:
+        raise UserError(f"{where}: give exactly one of 'expressions', 'waypoints' or 'segments'")
+    kind = given[0]
     name = str(data.get("name", Path(where).stem))
     description = str(data.get("description", ""))
     duration = data.get("duration")
@@ -223,16 +226,22 @@ def trajectory_from_dict(data: Any, where: str) -> ExpressionTrajectory | Waypoi
         duration = _positive(where, "duration", duration)
     limits = dict(DEFAULT_LIMITS)
     limits.update({k: _positive(where, k, data[k]) for k in ("max_speed", "max_acceleration") if k in data})
-    if has_e:
-        traj: ExpressionTrajectory | WaypointTrajectory = _expression_trajectory(
-            data["expressions"], where, name, description, duration if duration is not None else 20.0)
+    traj: Any
+    if kind == "expressions":
+        traj = _expression_trajectory(data["expressions"], where, name, description,
+                                      duration if duration is not None else 20.0)
+    elif kind == "segments":
+        traj = _segment_trajectory(data["segments"], where, name, description, duration)
     else:
         interp = data.get("interpolation", "quintic")
-        if interp != "quintic":
-            raise UserError(f"{where}: key 'interpolation' must be 'quintic' (C4 quintic spline), "
-                            f"got {interp!r}")
-        traj = _waypoint_trajectory(data["waypoints"], where, name, description, duration)
-    _check_samples(traj, where, limits, "waypoints" if has_w else "expressions")
+        if interp not in INTERPOLATIONS:
+            raise UserError(f"{where}: key 'interpolation' must be 'quintic' (C4 quintic spline through the "
+                            f"waypoints), 'min-jerk' or 'min-snap' (a rest-to-rest minimum-jerk or -snap leg "
+                            f"between each two), got {interp!r}")
+        traj = _waypoint_trajectory(data["waypoints"], where, name, description, duration, interp, limits)
+    if "interpolation" in data and kind != "waypoints":
+        raise UserError(f"{where}: key 'interpolation' only applies to 'waypoints'")
+    _check_samples(traj, where, limits, kind)
     return traj
 
 
@@ -244,29 +253,45 @@ def _positive(where: str, key: str, value: Any) -> float:
 
 
 def _expression_trajectory(raw: Any, where: str, name: str, description: str,
-                           duration: float) -> ExpressionTrajectory:
+                           duration: float, prefix: str = "expressions.") -> ExpressionTrajectory:
     if not isinstance(raw, dict):
-        raise UserError(f"{where}: key 'expressions' must map x, y, z, yaw to formulas in t")
+        raise UserError(f"{where}: key '{prefix.rstrip('.')}' must map x, y, z, yaw to formulas in t")
     exprs: dict[str, sympy.Expr] = {}
     for key, text in raw.items():
         if key not in _AXES:
-            raise UserError(f"{where}: unknown key 'expressions.{key}'", hint="known keys: x, y, z, yaw")
+            raise UserError(f"{where}: unknown key '{prefix}{key}'", hint="known keys: x, y, z, yaw")
         try:
             exprs[key] = parse_time_expression(text)
         except _Bad as exc:
-            raise UserError(f"{where}: key 'expressions.{key}': {exc}") from None
+            raise UserError(f"{where}: key '{prefix}{key}': {exc}") from None
     missing = [k for k in ("x", "y", "z") if k not in exprs]
     if missing:
-        raise UserError(f"{where}: key 'expressions.{missing[0]}' is missing",
+        raise UserError(f"{where}: key '{prefix}{missing[0]}' is missing",
                         hint="give x, y and z (NED, m) as formulas in t; yaw (rad) defaults to 0")
     return ExpressionTrajectory(name, exprs, duration=duration, description=description)
 
 
-def _waypoint_trajectory(raw: Any, where: str, name: str, description: str,
-                         duration: float | None) -> WaypointTrajectory:
+def _point(where: str, key: str, pos: Any) -> list[float]:
+    if (not isinstance(pos, list) or len(pos) != 3
+            or not all(isinstance(p, (int, float)) and not isinstance(p, bool) and math.isfinite(p)
+                       for p in pos)):
+        raise UserError(f"{where}: key '{key}' must be [x, y, z] in m (NED), got {pos!r}")
+    return [float(p) for p in pos]
+
+
+def _angle(where: str, key: str, y: Any) -> float:
+    if isinstance(y, bool) or not isinstance(y, (int, float)) or not math.isfinite(y):
+        raise UserError(f"{where}: key '{key}' must be an angle in rad, got {y!r}")
+    return float(y)
+
+
+def _waypoint_trajectory(raw: Any, where: str, name: str, description: str, duration: float | None,
+                         interpolation: str = "quintic",
+                         limits: dict[str, float] | None = None) -> WaypointTrajectory | PiecewiseTrajectory:
     if not isinstance(raw, list) or len(raw) < 2:
         raise UserError(f"{where}: key 'waypoints' must be a list of at least 2 waypoints")
-    times, positions, yaws = [], [], []
+    times: list[float | None] = []
+    positions, yaws = [], []
     yaw = 0.0
     for i, wp in enumerate(raw):
         key = f"waypoints[{i}]"
@@ -276,30 +301,112 @@ def _waypoint_trajectory(raw: Any, where: str, name: str, description: str,
         if bad:
             raise UserError(f"{where}: unknown key '{key}.{bad[0]}'", hint="known keys: t, position, yaw")
         t = wp.get("t")
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
-            raise UserError(f"{where}: key '{key}.t' must be a time >= 0 in s, got {t!r}")
-        if times and t <= times[-1]:
-            raise UserError(f"{where}: key '{key}.t' = {t} is not after the previous waypoint's "
-                            f"t = {times[-1]}",
-                            hint="waypoint times must strictly increase")
-        pos = wp.get("position")
-        if (not isinstance(pos, list) or len(pos) != 3
-                or not all(isinstance(p, (int, float)) and not isinstance(p, bool) and math.isfinite(p)
-                           for p in pos)):
-            raise UserError(f"{where}: key '{key}.position' must be [x, y, z] in m (NED), got {pos!r}")
+        if t is None and interpolation != "quintic":
+            times.append(None)
+        else:
+            if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+                raise UserError(f"{where}: key '{key}.t' must be a time >= 0 in s, got {t!r}",
+                                hint="with interpolation min-jerk or min-snap the times may be left out "
+                                     "(every waypoint's): they are allocated from max_speed and "
+                                     "max_acceleration")
+            last = next((v for v in reversed(times) if v is not None), None)
+            if last is not None and t <= last:
+                raise UserError(f"{where}: key '{key}.t' = {t} is not after the previous waypoint's "
+                                f"t = {last}", hint="waypoint times must strictly increase")
+            times.append(float(t))
+        positions.append(_point(where, f"{key}.position", wp.get("position")))
         if "yaw" in wp:
-            y = wp["yaw"]
-            if isinstance(y, bool) or not isinstance(y, (int, float)) or not math.isfinite(y):
-                raise UserError(f"{where}: key '{key}.yaw' must be an angle in rad, got {y!r}")
-            yaw = float(y)
-        times.append(float(t))
-        positions.append([float(p) for p in pos])
+            yaw = _angle(where, f"{key}.yaw", wp["yaw"])
         yaws.append(yaw)
-    return WaypointTrajectory(name, np.array(times), np.array(positions), np.array(yaws),
-                              duration=duration, description=description)
+    if interpolation == "quintic":
+        return WaypointTrajectory(name, np.array(times, dtype=float), np.array(positions), np.array(yaws),
+                                  duration=duration, description=description)
+    if any(v is None for v in times) and not all(v is None for v in times):
+        raise UserError(f"{where}: key 'waypoints': give t for every waypoint or for none",
+                        hint="without times, each leg's time is allocated from max_speed and "
+                             "max_acceleration")
+    lim = limits or DEFAULT_LIMITS
+    legs, durations = [], []
+    for k in range(len(positions) - 1):
+        a, b = positions[k], positions[k + 1]
+        if times[0] is None:
+            dist = float(np.linalg.norm(np.subtract(b, a)))
+            leg = min_jerk_duration(dist, TIME_ALLOCATION_MARGIN * lim["max_speed"],
+                                    TIME_ALLOCATION_MARGIN * lim["max_acceleration"], shortest=0.5,
+                                    profile=interpolation)
+        else:
+            leg = float(times[k + 1]) - float(times[k])  # type: ignore[arg-type]
+        legs.append(MoveSegment(tuple(a), tuple(b), yaws[k], yaws[k + 1], leg, interpolation))  # type: ignore
+        durations.append(leg)
+    if times[0] not in (None, 0.0):
+        legs.insert(0, HoldSegment(tuple(positions[0]), yaws[0]))  # type: ignore[arg-type]
+        durations.insert(0, float(times[0]))  # type: ignore[arg-type]
+    return PiecewiseTrajectory(name, legs, durations, duration=duration, description=description,
+                               kinds=["move"] * len(legs))
 
 
-def _check_samples(traj: ExpressionTrajectory | WaypointTrajectory, where: str, limits: dict[str, float],
+def _segment_trajectory(raw: Any, where: str, name: str, description: str,
+                        duration: float | None) -> PiecewiseTrajectory:
+    """Segments: hold (at position, default the previous end), step (jump to position and hold), ramp
+    (constant speed to position), move (minimum-snap to position), expressions (x, y, z, yaw in t since the
+    segment's start); each with a duration [s] and an optional yaw [rad]."""
+    if not isinstance(raw, list) or not raw:
+        raise UserError(f"{where}: key 'segments' must be a list of segments",
+                        hint=f"each a mapping with kind ({', '.join(SEGMENT_KINDS)}) and duration")
+    segments: list[Any] = []
+    durations, kinds = [], []
+    end: list[float] | None = None
+    yaw = 0.0
+    for i, seg in enumerate(raw):
+        key = f"segments[{i}]"
+        if not isinstance(seg, dict):
+            raise UserError(f"{where}: key '{key}' must be a mapping with kind and duration")
+        kind = seg.get("kind")
+        if kind not in SEGMENT_KINDS:
+            raise UserError(f"{where}: key '{key}.kind' must be one of {', '.join(SEGMENT_KINDS)}, "
+                            f"got {kind!r}")
+        allowed = {"kind", "duration", "yaw"} | ({"x", "y", "z"} if kind == "expressions" else {"position"})
+        bad = sorted(str(k) for k in seg if k not in allowed)
+        if bad:
+            raise UserError(f"{where}: unknown key '{key}.{bad[0]}'",
+                            hint=f"a {kind} segment knows: {', '.join(sorted(allowed))}")
+        if "duration" not in seg:
+            raise UserError(f"{where}: key '{key}.duration' is missing", hint="the segment's length in s")
+        dur = _positive(where, f"{key}.duration", seg["duration"])
+        if kind == "expressions":
+            exprs = {k: seg[k] for k in ("x", "y", "z") if k in seg}
+            if "yaw" in seg:
+                exprs["yaw"] = seg["yaw"]
+            built = _expression_trajectory(exprs, where, f"{name}[{i}]", "", dur, f"{key}.")
+            segments.append(built)
+            last = built.values(dur)
+            end, yaw = last[0:3], last[15]
+        else:
+            start_yaw = yaw
+            if "yaw" in seg:
+                yaw = _angle(where, f"{key}.yaw", seg["yaw"])
+            if "position" in seg:
+                target = _point(where, f"{key}.position", seg["position"])
+            elif kind == "hold" and end is not None:
+                target = list(end)
+            else:
+                raise UserError(f"{where}: key '{key}.position' is missing",
+                                hint="a hold without position stays at the previous segment's end; the "
+                                     f"first segment and every {kind} need [x, y, z] in m (NED)")
+            if kind in ("hold", "step") or end is None:
+                segments.append(HoldSegment(tuple(target), yaw))  # type: ignore[arg-type]
+            elif kind == "ramp":
+                segments.append(RampSegment(tuple(end), tuple(target), start_yaw, yaw, dur))  # type: ignore
+            else:
+                segments.append(MoveSegment(tuple(end), tuple(target), start_yaw, yaw, dur))  # type: ignore
+            end = target
+        durations.append(dur)
+        kinds.append(str(kind))
+    return PiecewiseTrajectory(name, segments, durations, duration=duration, description=description,
+                               kinds=kinds)
+
+
+def _check_samples(traj: UserTrajectory, where: str, limits: dict[str, float],
                    key: str) -> None:
     """Evaluate the reference densely over [0, duration]: finite first, then within the speed/accel limits."""
     names = ("position", "velocity", "acceleration", "jerk", "snap")
@@ -340,7 +447,9 @@ class TrajectoryInfo:
     description: str
 
 
-def describe(traj: ExpressionTrajectory | WaypointTrajectory) -> TrajectoryInfo:
-    """Name, kind (expressions | waypoints), default duration [s] and description of a trajectory."""
-    kind = "expressions" if isinstance(traj, ExpressionTrajectory) else "waypoints"
+def describe(traj: UserTrajectory) -> TrajectoryInfo:
+    """Name, kind (expressions | waypoints | segments), default duration [s] and description."""
+    kind = "expressions" if isinstance(traj, ExpressionTrajectory) else \
+        "waypoints" if isinstance(traj, WaypointTrajectory) or set(getattr(traj, "kinds", [])) == {"move"} \
+        else "segments"
     return TrajectoryInfo(traj.name, kind, traj.duration, traj.description)

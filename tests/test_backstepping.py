@@ -166,19 +166,24 @@ def test_far_reference_keeps_tilt_and_arcsine_in_range(vehicle, ctl):
         assert np.all(cmd.rotor_speeds >= 0) and np.all(cmd.rotor_speeds <= c.w_max)
 
 
-def test_motor_limits_when_asking_too_much(ctl):
+def test_a_far_height_asks_the_vertical_limit_not_the_motor_limits(ctl, model):
+    """A 50 m climb or sink is flown at the outer loop's vertical limits: no motor saturates (thrust and
+    attitude keep their room); only a request beyond the motors (a huge yaw acceleration) saturates."""
     xi = np.zeros(12)
     xi[2] = -10.0
-    for z_d, expect in ((-60.0, "top"), (40.0, "bottom")):
+    up, down = ctl.outer_loop.vertical_limits()
+    for z_d, limit in ((-60.0, up), (40.0, down)):
         ctl.reset()
         cmd = ctl.update(1.0, VehicleState(xi=xi, rotor_speeds=np.full(4, 557.0)),
                          Reference(position=np.array([0.0, 0.0, z_d])))
-        assert cmd.saturated
-        assert np.all(cmd.rotor_speeds >= 0.0) and np.all(cmd.rotor_speeds <= ctl.w_max)
-        if expect == "top":
-            assert np.allclose(cmd.rotor_speeds, ctl.w_max)
-        else:
-            assert np.allclose(cmd.rotor_speeds, 0.0)
+        assert not cmd.saturated and np.all(cmd.rotor_speeds > 0.0) and np.all(cmd.rotor_speeds < ctl.w_max)
+        az = model.accelerations(xi, cmd.rotor_speeds)[2]
+        assert az == pytest.approx(limit, abs=1e-6)
+    ctl.reset()
+    cmd = ctl.update(1.0, VehicleState(xi=xi, rotor_speeds=np.full(4, 557.0)),
+                     Reference(position=xi[:3].copy(), yaw_acceleration=1e5))
+    assert cmd.saturated and cmd.info["allocation"] == "yaw"
+    assert np.all(cmd.rotor_speeds >= 0.0) and np.all(cmd.rotor_speeds <= ctl.w_max)
 
 
 def test_case2_from_the_ground(ctl, plant):

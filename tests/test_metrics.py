@@ -93,3 +93,28 @@ def test_markdown_and_csv_writers(tmp_path):
     md, csv_path = write_metrics(never, tmp_path)
     assert "never settled" in md.read_text()
     assert read_metrics_csv(csv_path)["settle_time_s"] == ""
+
+
+def test_overshoot_along_the_first_approach_including_a_takeoff_phase():
+    from controller.metrics import overshoot
+
+    t = np.linspace(0.0, 10.0, 1001)
+    # a take-off reference starting at the vehicle and climbing to 2 m; the vehicle overshoots by 7 cm
+    ref = np.zeros((t.size, 3))
+    ref[:, 2] = -2.0 * np.clip(t / 4.0, 0.0, 1.0)
+    pos = ref.copy()
+    pos[:, 2] -= 0.07 * np.exp(-((t - 5.0) ** 2))  # 7 cm above it around t = 5 s
+    assert overshoot(pos, ref) == pytest.approx(0.07, rel=1e-3)
+    # lagging behind (never past) is no overshoot; passing sideways is not along the approach
+    assert overshoot(ref * 0.9, ref) == 0.0
+    side = ref.copy()
+    side[:, 0] += 0.5
+    assert overshoot(side, ref) == pytest.approx(0.0, abs=1e-12)
+    # a reference starting 4.5 m away (Case II): past it along that direction
+    ref2 = np.tile([2.0, 4.0, 0.0], (t.size, 1))
+    share = np.minimum(t / 3.0, 1.0 + 0.02 * np.sin(np.pi * np.clip(t - 3.0, 0.0, 1.0)))  # 2 % past at 3.5 s
+    pos2 = np.outer(share, [2.0, 4.0, 0.0])
+    m = compute_metrics(t, pos2, ref2, np.zeros_like(t), np.zeros_like(t), np.zeros(t.size, bool),
+                        np.full(t.size, 1e-4))
+    assert m.overshoot_m == pytest.approx(0.02 * np.hypot(2.0, 4.0), rel=1e-3)
+    assert m.max_after_5s_m == pytest.approx(0.0, abs=1e-12)
