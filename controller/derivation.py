@@ -95,8 +95,26 @@ def normalise(expressions: Mapping[str, sympy.Expr]) -> dict[str, sympy.Expr]:
             if s.name not in SYMBOLS:
                 raise UserError(f"the model's {name} uses an unknown name {s.name!r}")
             sub[s] = SYMBOLS[s.name]
-        out[name] = e.xreplace(sub)
+        out[name] = smooth_norms(e.xreplace(sub))
     return out
+
+
+NORM_FLOOR = 1e-12  # (m/s)^2 or (rad/s)^2 added under every square root: |v| is off by at most 1e-6
+
+
+def smooth_norms(expr: sympy.Expr) -> sympy.Expr:
+    """The expression with sqrt(S) (and S^(-1/2), S^(3/2), ...) replaced by the same power of S + 1e-12.
+
+    A vector norm such as the frame drag's |v_a| = sqrt(u^2 + v^2 + w^2) has an undefined derivative at
+    zero (0/0), and the law differentiates the model at hover and on the ground, where v = 0 exactly: a
+    NaN there would make the model look uninvertible. With the floor the terms and their derivatives are
+    finite everywhere (u |v| has derivative 0 at rest, as it should), and values change by at most 1e-6.
+    """
+    def is_root(e: sympy.Expr) -> bool:
+        return (e.is_Pow and e.exp.is_Rational and e.exp.q == 2 and not e.base.is_number
+                and not e.base.is_positive)
+
+    return expr.replace(is_root, lambda e: (e.base + NORM_FLOOR) ** e.exp)
 
 
 def fast_function(name: str, args: list[sympy.Symbol], exprs: list[sympy.Expr],

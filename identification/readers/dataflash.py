@@ -208,7 +208,9 @@ def _aux_streams(msgs: dict[str, list[Any]], imu: list[Any], path: Path) -> dict
               for m, t in zip(msgs["EV"], _times(msgs["EV"], path) if msgs["EV"] else [], strict=True)
               if getattr(m, "Id", None) in (EV_ARMED, EV_DISARMED)]
     arm = [m for m in msgs["ARM"] if hasattr(m, "ArmState")]  # ArduPilot 4.1 and newer
-    events += [(float(t), 1.0 if m.ArmState else 0.0) for m, t in zip(arm, _times(arm, path), strict=True)]
+    if arm:
+        times = _times(arm, path)
+        events += [(float(t), 1.0 if m.ArmState else 0.0) for m, t in zip(arm, times, strict=True)]
     if events:
         events.sort()
         t = np.array([e[0] for e in events])
