@@ -48,6 +48,8 @@ random:
     ("samples: 2\nrandom: {wind_speed: {scale: [0, 1]}}\n", "scale multiplies a vehicle-file value"),
     ("samples: 2\nrandom: {inertia: {uniform: [0, 1]}}\n", "is a list; vary it with scale"),
     ("fixed: {turbulence: moderate}\n", "turbulence is asked for without a wind speed"),
+    ("fixed: {turbulence: light}\nsamples: 2\nrandom: {wind_speed: {uniform: [0, 6]}}\n",
+     "'random.wind_speed' can be 0 m/s with turbulence"),
     ("fixed: {duration: -1}\n", "must be > 0 s"),
     ("grid: {mass: [1.0]}\nfixed: {mass: 1.2}\n", "both in 'grid' and in 'fixed'"),
     ("samples: 0\n", "'samples' must be an integer >= 1"),

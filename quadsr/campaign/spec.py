@@ -254,6 +254,17 @@ def _learned_model(where: str, base: Path, value: Any) -> LearnedModelSpec:
     return LearnedModelSpec(None, str(value.get("profile", "closed-loop")), duration, seed)
 
 
+MIN_TURBULENT_WIND = 0.1  # m/s, the smallest mean wind the SITL accepts with Dryden turbulence
+
+
+def _lowest(dist: Distribution) -> float:
+    """The smallest value a wind-speed distribution can draw (normal: mean - 4 std)."""
+    if dist.kind == "choice":
+        return min(float(v) for v in dist.args)
+    a, b = dist.args
+    return a - 4.0 * b if dist.kind == "normal" else a
+
+
 TOP_KEYS = ("name", "seed", "vehicle", "pipeline", "grid", "fixed", "random", "samples", "models",
             "identify_budget", "keep_flights", "description")
 
@@ -319,10 +330,19 @@ def load_campaign(path: str | Path) -> CampaignSpec:
         raise UserError(f"{where}: 'random' is given but 'samples' is not",
                         hint="say how many Monte-Carlo draws to fly, e.g. samples: 25")
     turbulence = {*grid.get("turbulence", ()), fixed.get("turbulence", "none")}
+    if "turbulence" in random:
+        turbulence |= set(random["turbulence"].args)
     speeds = {*grid.get("wind_speed", ()), fixed.get("wind_speed", 0.0)}
     if turbulence - {"none"} and speeds == {0.0} and "wind_speed" not in random:
         raise UserError(f"{where}: turbulence is asked for without a wind speed",
                         hint="Dryden turbulence scales with the mean wind: give wind_speed > 0")
+    if turbulence - {"none"}:  # the SITL refuses Dryden turbulence below MIN_TURBULENT_WIND m/s
+        low = min(speeds) if "wind_speed" not in random else _lowest(random["wind_speed"])
+        where_key = "random.wind_speed" if "wind_speed" in random else "grid/fixed wind_speed"
+        if low < MIN_TURBULENT_WIND:
+            raise UserError(f"{where}: key '{where_key}' can be {low:g} m/s with turbulence asked for",
+                            hint=f"Dryden turbulence needs a mean wind of at least {MIN_TURBULENT_WIND} m/s "
+                                 "(its time scale): start the range there, or fly still air without it")
     models = _mapping(where, data, "models")
     unknown = set(models) - {"learned"}
     if unknown:
