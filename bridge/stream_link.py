@@ -186,8 +186,12 @@ class TcpLink:
             return []
         if not ready or self._conn is None:
             return []
+        return self._read(self._conn)
+
+    def _read(self, conn: socket.socket) -> list[tuple]:
+        """One read from a ready connection, split into checked frames; a closed or failed peer is dropped."""
         try:
-            data = self._conn.recv(READ_SIZE, socket.MSG_DONTWAIT)
+            data = conn.recv(READ_SIZE, socket.MSG_DONTWAIT)
         except (BlockingIOError, InterruptedError, TimeoutError):
             return []
         except OSError as exc:
@@ -303,17 +307,7 @@ class TcpClientLink(TcpLink):
             return []
         if not ready:
             return []
-        try:
-            data = conn.recv(READ_SIZE, socket.MSG_DONTWAIT)
-        except (BlockingIOError, InterruptedError, TimeoutError):
-            return []
-        except OSError as exc:
-            self._drop(exc.strerror or type(exc).__name__)
-            return []
-        if not data:
-            self._drop("the peer closed the connection")
-            return []
-        return self._accept_bytes(data)
+        return self._read(conn)
 
     _decode = UdpLink._decode
 
