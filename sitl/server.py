@@ -90,6 +90,7 @@ class SitlServer:
         self.last_cmd_usec = -1  # time_usec stamped on the last applied actuator command
         self.last_cmd_sim_usec = 0  # simulated time when the last actuator command was applied
         self._last_reply_usec = -1  # time_usec of the last accepted actuator message, as stamped
+        self._rejoining = False  # lockstep failsafe left for a companion's hello; its first reply resumes
         self._companion_heard = 0.0  # wall time (monotonic s) the bound companion last spoke
         # another sender may take the HIL link over only after the companion was silent this long (wall s)
         lockstep = options.mode == "lockstep"
@@ -245,6 +246,9 @@ class SitlServer:
             else:
                 self._keep_peer()
             if reply is not None:
+                if self._rejoining:
+                    self._rejoining = False
+                    self._queue_text(mavlink.MAV_SEVERITY_INFO, "quadsr failsafe: actuator commands resumed")
                 self._advance(reply)
                 if self._done():
                     return
@@ -292,6 +296,13 @@ class SitlServer:
             else:
                 self._keep_peer()
             if reply is None:
+                if hello and not realtime and self.phase == "failsafe":
+                    # A companion (re)connects: wait for its reply to the current step instead of stepping on
+                    # at wall pace, so its first command applies to the step it answers, however slow it is.
+                    self.phase = "stepping"
+                    self._rejoining = True
+                    self._send_step()
+                    return
                 continue
             self.held = reply
             self.last_cmd_sim_usec = self.quad.time_usec
@@ -306,6 +317,7 @@ class SitlServer:
     def _engage_failsafe(self, why: str, explanation: str) -> None:
         """Motors to zero, a STATUSTEXT (`why` is short: it must fit in 50 characters), a console line."""
         self.phase = "failsafe"
+        self._rejoining = False
         self.held = ZERO
         self.commands.failsafes += 1
         text = f"quadsr failsafe: {why}, motors off"

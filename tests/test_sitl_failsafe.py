@@ -98,6 +98,29 @@ def test_a_lockstep_client_recovers_from_a_failsafe(start_sitl):
     assert np.allclose(obs.rotor_speeds, SPIN_SPEED, rtol=1e-3)
 
 
+def test_a_new_companion_in_failsafe_gets_lockstep_from_the_step_it_answers(start_sitl):
+    # The failsafe steps at wall pace; a companion that connects must not lose steps to it while its first
+    # reply is on the way (a slow or loaded companion): its hello stops the pacing, its reply is applied to
+    # the very step it answers, and every later step follows its commands.
+    sitl = start_sitl("--lockstep-timeout", "0.2", "--sensors", "ideal")
+    with LockstepClient(sitl.hil, timeout=2.0) as first:
+        first.connect(10.0)
+        for _ in range(10):
+            first.step([SPIN] * 4)
+    sitl.wait_for(r"phase=failsafe")
+    with LockstepClient(sitl.hil, timeout=2.0) as late:
+        start = late.connect(10.0)
+        time.sleep(0.15)  # slow to answer, within the 0.2 s bound: no step may pass meanwhile
+        obs = late.step([SPIN] * 4)
+        assert obs.time_usec == start.time_usec + 4000
+        for _ in range(40):
+            previous = obs.time_usec
+            obs = late.step([SPIN] * 4)
+            assert obs.time_usec == previous + 4000
+        assert any("resumed" in t for t in late.status_texts)
+    assert np.allclose(obs.rotor_speeds, SPIN_SPEED, rtol=1e-3)
+
+
 def test_realtime_failsafe_after_0_2_s_of_simulated_silence(start_sitl, raw_companion):
     sitl = start_sitl("--mode", "realtime", "--sensors", "ideal")
     companion = raw_companion(sitl.hil)
