@@ -34,6 +34,7 @@ from scipy.ndimage import maximum_filter1d
 
 from bridge.errors import UserError
 from bridge.rotations import euler_from_quaternions
+from identification.flight_evidence import no_flight_evidence, raise_no_flight
 from identification.motor_model import ThrustCurve
 from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.table import Dataset
@@ -425,12 +426,9 @@ def read_ulog_dataset(
     try:
         ds = make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
     except UserError as exc:
-        if "armed" in aux and not (aux["armed"] > 0.5).any():
-            raise UserError(
-                f"{exc.args[0]}; the vehicle was never armed in this log (vehicle_status.arming_state), "
-                "so it holds no flight",
-                hint="use a log of a flight: armed, airborne, with a valid local position",
-            ) from None
+        evidence = no_flight_evidence(timeline, aux, values[s_lp.name][:, 2])
+        if evidence is not None:
+            raise_no_flight(f"PX4 log {path}", evidence, also=str(exc.args[0]))
         raise
     ds.u_from_throttle = rotor is None and not use_esc
     return ds
