@@ -64,6 +64,6 @@ def raise_no_flight(source: str, evidence: list[str], also: str = "") -> None:
     """Raise NoFlightError for the log at source with its evidence lines (and what else was missing)."""
     more = f"; besides, {also}" if also else ""
     raise NoFlightError(
-        f"{source} holds no flight, so no model can be learned from it: " + "; ".join(evidence) + more,
+        f"{source} holds no flight to learn from or validate on: " + "; ".join(evidence) + more,
         hint="give a log of a flight (armed, motors running, airborne)",
     )
