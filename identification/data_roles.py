@@ -18,9 +18,10 @@ target barely varies (the 10 s PX4 take-off log ends in a steady descent: z'' sp
 there measures noise, not the model. So each role's spread is checked, per target, against the flight's:
 the spread ratio is the standard deviation of the target (winsorised at the flight's 1st and 99th
 percentiles, so one spike does not count as variation) in the role's rows over that in all the flight's
-rows. When the default layout leaves some role with some target below MIN_SPREAD_RATIO, the pick and
-validate blocks (same lengths) are moved to the positions on a grid that maximise the smallest ratio over
-roles and targets, if those reach MIN_SPREAD_RATIO (else the tail stays, with a note: a flight whose
+rows. When the default layout's pick or validate block spreads some target less than MIN_SPREAD_RATIO,
+the pick and validate blocks (same lengths) are moved to the positions on a grid that maximise the
+smallest ratio over all roles (the fit rows included, so that they keep variation to learn from) and
+targets, if that reaches MIN_SPREAD_RATIO (else the tail stays, with a note: a flight whose
 targets vary only in a short part, such as a take-off transient, has no good place to validate); the fit
 rows are then the rest of the flight, which may come in two or three pieces, each still gap_s away from
 the held-out blocks. The placement looks only at the targets, never at a model,
@@ -73,8 +74,9 @@ class Block:
 @dataclass(frozen=True)
 class Layout:
     """How one flight's blocks were placed: kind 'tail' (fit | pick | validate in time) or 'spread' (moved
-    where the targets vary); smallest spread ratio over roles and targets of the layout used and of the
-    tail layout; a line saying so."""
+    where the targets vary); the smallest spread ratio over the targets of the layout used (over all roles
+    when moved, else the tail's held-out blocks) and of the tail layout's held-out blocks; a line saying
+    so."""
 
     file: str
     kind: str
@@ -264,17 +266,17 @@ def _flight_masks(
     if not held or len(t) < 2:
         return tail, None
     spread = _Spread(t, y)
-    tail_ratio = min(_mask_ratio(spread, m) for m in tail.values())
+    tail_ratio = min(_mask_ratio(spread, tail[r]) for r in held)  # the held-out blocks of the tail layout
     if tail_ratio >= MIN_SPREAD_RATIO:
         return tail, Layout(file, "tail", tail_ratio, tail_ratio, "")
     usable = float(t[-1] - t[0]) - gap * (len(roles) - 1)
     blocks, ratio = _spread_layout(spread, held, usable, gap)
     if not blocks or ratio < MIN_SPREAD_RATIO:
         note = (
-            f"note: {file}: a target barely varies at the end of the flight (smallest spread of a target in "
-            f"a block, against the whole flight's: {tail_ratio:.2f} < {MIN_SPREAD_RATIO:g}) and no placement "
-            f"of the held-out blocks does well enough (best {max(ratio, tail_ratio):.2f}): kept the tail; "
-            "the validation R^2 of a target that barely varies there says little"
+            f"note: {file}: a target barely varies at the end of the flight (smallest spread of a target "
+            f"in a held-out block, against the whole flight's: {tail_ratio:.2f} < {MIN_SPREAD_RATIO:g}) and "
+            f"no placement of the held-out blocks does well enough (best {max(ratio, tail_ratio):.2f}): kept "
+            "the tail; the validation R^2 of a target that barely varies there says little"
         )
         return tail, Layout(file, "tail", tail_ratio, tail_ratio, note)
     masks = {r: (t >= a) & (t <= b) for r, (a, b) in blocks.items()}
@@ -285,8 +287,8 @@ def _flight_masks(
     where = ", ".join(f"{r} {a:.2f}-{b:.2f} s" for r, (a, b) in sorted(blocks.items()))
     note = (
         f"note: {file}: a target barely varies at the end of the flight (smallest spread of a target in a "
-        f"block, against the whole flight's: {tail_ratio:.2f} < {MIN_SPREAD_RATIO:g}), so the held-out "
-        f"blocks go where every target varies: {where}, fit on the rest {gap:g} s apart "
+        f"held-out block, against the whole flight's: {tail_ratio:.2f} < {MIN_SPREAD_RATIO:g}), so the "
+        f"held-out blocks go where every target varies: {where}, fit on the rest {gap:g} s apart "
         f"(smallest spread {ratio:.2f})"
     )
     return masks, Layout(file, "spread", ratio, tail_ratio, note)
