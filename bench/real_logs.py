@@ -167,7 +167,12 @@ def main() -> int:
             results.append((f"{path.name}: az validation R^2 >= 0.9", ours["az"] >= 0.9, f"{ours['az']:.4f}"))
         if path.name == "pyulog_sample_auavx21.ulg":
             print("\nfirst half of the airborne time -> second half:")
-            half, first, second = halves(data, args.budget)
+            try:
+                half, first, second = halves(data, args.budget)
+            except UserError as exc:
+                print(f"halves: {exc}")
+                not_evaluated.append(f"{path.name}: halves ({exc})")
+                continue
             ours, base = compare(half, first, second)
             worse = [n for n in TARGET_NAMES if ours[n] < base[n]]
             checks = plausibility_checks(half, first.xi, half._inputs(first))
