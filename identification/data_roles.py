@@ -24,8 +24,8 @@ smallest ratio over all roles (the fit rows included, so that they keep variatio
 targets, if that reaches MIN_SPREAD_RATIO (else the tail stays, with a note: a flight whose
 targets vary only in a short part, such as a take-off transient, has no good place to validate); the fit
 rows are then the rest of the flight, which may come in two or three pieces, each still gap_s away from
-the held-out blocks. The placement looks only at the targets, never at a model,
-so it cannot favour one; the model file records it per flight (`data.layout`).
+the held-out blocks. The placement looks only at the targets, never at a model, so it cannot favour one;
+the model file records it per flight (`data.layout`).
 
 Each block is recorded for the model file: the flight's file and sha256, the first and last time of its
 rows (s, the log's own clock) and its row count; a role holding several pieces of one flight has one block
@@ -45,7 +45,7 @@ from identification.targets import SensorTargetSettings
 DEFAULT_GAP_S = SensorTargetSettings().max_window_s  # s: no differentiator window is longer
 ROLES = ("fit", "pick", "validate")
 MIN_ROWS = 20  # fewer rows in a role is an error
-MIN_SPREAD_RATIO = 0.5  # the default layout stays when every role spreads each target at least this much
+MIN_SPREAD_RATIO = 0.5  # the tail layout stays when its held-out blocks spread each target at least this
 GRID_POSITIONS = 60  # candidate start times per moved block
 
 
@@ -190,10 +190,9 @@ class _Spread:
         self.s1 = np.vstack((np.zeros(z.shape[1]), np.cumsum(z, axis=0)))
         self.s2 = np.vstack((np.zeros(z.shape[1]), np.cumsum(z * z, axis=0)))
 
-    def _index(self, a: float, b: float, closed: bool) -> tuple[int, int]:
-        """Row range [i, j) of times in [a, b] (closed) or strictly inside (a, b) (open)."""
-        side_a, side_b = ("left", "right") if closed else ("right", "left")
-        return int(np.searchsorted(self.t, a, side_a)), int(np.searchsorted(self.t, b, side_b))
+    def _index(self, a: float, b: float) -> tuple[int, int]:
+        """Row range [i, j) of the times in [a, b] (s)."""
+        return int(np.searchsorted(self.t, a, "left")), int(np.searchsorted(self.t, b, "right"))
 
     def ratio(self, n: int, s1: np.ndarray, s2: np.ndarray) -> float:
         """Smallest standard-deviation ratio over the targets of a set of n rows with sums s1, s2."""
@@ -215,13 +214,13 @@ class _Spread:
                 merged.append([a, b])
         n_fit, f1, f2 = len(self.t), self.s1[-1].copy(), self.s2[-1].copy()
         for a, b in merged:  # fit: rows at least gap away (strictly) from every held-out block
-            i, j = self._index(a, b, closed=True)
+            i, j = self._index(a, b)
             n_fit -= j - i
             f1 -= self.s1[j] - self.s1[i]
             f2 -= self.s2[j] - self.s2[i]
         worst = self.ratio(n_fit, f1, f2)
         for a, b in held:
-            i, j = self._index(a, b, closed=True)
+            i, j = self._index(a, b)
             worst = min(worst, self.ratio(j - i, self.s1[j] - self.s1[i], self.s2[j] - self.s2[i]))
         return worst
 

@@ -40,7 +40,6 @@ import numpy as np
 
 from bridge.errors import UserError
 from bridge.geodesy import flat_earth_ned
-from identification.flight_evidence import no_flight_evidence, raise_no_flight
 from identification.motor_model import ThrustCurve
 from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.table import Dataset
@@ -356,12 +355,6 @@ def read_dataflash_dataset(
         v, ok = s_thr.resample(timeline)
         aux["throttle"] = np.where(ok[:, None], v, np.nan)
     tgt = np.concatenate((vals[s_tgt.name], vals[s_dw.name]), axis=1)
-    try:
-        ds = make_dataset(path, "dataflash", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
-    except UserError as exc:
-        evidence = no_flight_evidence(timeline, aux, xi[:, 2])
-        if evidence is not None:
-            raise_no_flight(f"ArduPilot log {path}", evidence, also=str(exc.args[0]))
-        raise
+    ds = make_dataset(path, "dataflash", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
     ds.u_from_throttle = rotor is None and not use_esc
     return ds

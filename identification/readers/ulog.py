@@ -34,7 +34,6 @@ from scipy.ndimage import maximum_filter1d
 
 from bridge.errors import UserError
 from bridge.rotations import euler_from_quaternions
-from identification.flight_evidence import no_flight_evidence, raise_no_flight
 from identification.motor_model import ThrustCurve
 from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
 from identification.table import Dataset
@@ -423,13 +422,7 @@ def read_ulog_dataset(
         tgt = np.concatenate((values[s_acc.name], values[s_dw.name]), axis=1)
     else:
         tgt = values[s_sens.name]
-    try:
-        ds = make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
-    except UserError as exc:
-        evidence = no_flight_evidence(timeline, aux, values[s_lp.name][:, 2])
-        if evidence is not None:
-            raise_no_flight(f"PX4 log {path}", evidence, also=str(exc.args[0]))
-        raise
+    ds = make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes, aux=aux)  # no flight: says so
     ds.u_from_throttle = rotor is None and not use_esc
     return ds
 
