@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from identification.flight_evidence import no_flight_evidence, raise_no_flight
 from identification.readers.registry import detect_format, reader_for
 from identification.segmentation import SegmentationSettings, Window, segment
 from identification.table import (  # noqa: F401  (re-exported: the table's names live in identification.table)
@@ -61,7 +62,12 @@ def load_dataset(
     reader = reader_for(fmt)
     ds = reader(Path(path), targets=targets, motor_curve=motor_curve, rate_hz=rate_hz, gravity=gravity)
     if airborne or windows:
-        ds = segment(ds, windows=windows, settings=segmentation)
+        kept = segment(ds, windows=windows, settings=segmentation)
+        if not len(kept) and not windows:
+            evidence = no_flight_evidence(ds.t, ds.aux, ds.xi[:, 2])
+            if evidence is not None:
+                raise_no_flight(f"flight log {path}", evidence)
+        ds = kept
     return ds
 
 

@@ -157,7 +157,7 @@ def identify(
     gates: dict[str, float] = {}
     identifiability: dict[str, Any] = {}
     below: dict[str, float] = {}
-    warnings: list[str] = []
+    warnings: list[str] = roles.notes()  # where the held-out blocks went when a flight's tail is steady
     total_start = time.perf_counter()
     library = build_library(settings.sparse.groups)
     library_names = [f.name for f in library]

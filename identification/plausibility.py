@@ -1,7 +1,9 @@
 """Physical plausibility checks of a model, printed with it: can an engineer trust these equations?
 
-At the hover point (level, at rest, every rotor at the log's hover speed u_h: the median rotor speed of
-the rows, or the vehicle's hover speed when a vehicle file is given):
+At the hover point (level, at rest, at the median position of the rows (NED m: a model with a height
+term, such as ground effect, is judged where the log flew, not at the origin), every rotor at the log's
+hover speed u_h: the median rotor speed of the rows, or the vehicle's hover speed when a vehicle file is
+given):
 - gravity: z'' with the rotors stopped is +g (NED, down) within 15%.
 - hover: z'' at u_h is near 0 (the log hovered there), within 15% of g; with a vehicle file, the mass
   that the model's thrust implies (Ct * sum u_h^2 / thrust acceleration, kg) against the file's.
@@ -71,6 +73,8 @@ def plausibility_checks(
     names = tuple(model.target_names)
     u_h = float(vehicle.hover_speed) if vehicle is not None else float(np.median(u))
     level = np.zeros(12)
+    if len(xi):
+        level[0:3] = np.nanmedian(np.asarray(xi, dtype=float)[:, 0:3], axis=0)  # m NED, where the log flew
     if "az" in names:
         g_model = float(_eval(model, "az", level, np.zeros(4))[0])
         ok = abs(g_model - gravity) <= 0.15 * gravity

@@ -83,6 +83,7 @@ class QuadrotorModel:
         self.model_: Model | None = None
         self.motor_: ThrustCurve | None = None
         self.motor_note_ = ""
+        self.roles_ = None
         self._fns: dict[str, Any] = {}
 
     # -- learning ------------------------------------------------------------------------------------
@@ -92,6 +93,7 @@ class QuadrotorModel:
         from identification.identify import identify
 
         roles = assign_roles(data, pick_fraction=self.holdout, validate_fraction=self.validate_fraction)
+        self.roles_ = roles  # the fit / pick / validate rows the model file records (data_roles)
         fit_rows = roles.fit
         self.motor_, self.motor_note_ = choose_motor_model(fit_rows)
         if self.motor_ is not None:

@@ -47,6 +47,17 @@ def test_the_true_model_passes_and_a_wrong_one_is_flagged():
     assert {"control dwy", "control dwz", "self-feedback dwy", "self-feedback ax"} <= set(ok)
 
 
+def test_the_hover_point_is_where_the_log_flew_not_the_origin():
+    """A model with a height term (0.01/z, like a ground-effect fit) is judged at the rows' median z."""
+    exprs = dict(true_model("fang-chen-buaa").expressions)
+    exprs["az"] = exprs["az"] + 0.01 / S["z"]
+    data = synthetic_dataset(400, seed=2)
+    xi = data.xi.copy()
+    xi[:, 2] = -2.0 - 0.1 * (xi[:, 2] - xi[:, 2].mean())  # flying about 2 m up (NED)
+    checks = {c.name: c for c in plausibility_checks(QuadrotorModel.from_model(Model(exprs)), xi, data.u)}
+    assert checks["gravity"].ok and "+9.8" in checks["gravity"].text  # 9.8 - 0.005 at z = -2 m; inf at 0
+
+
 def test_equations_read_as_grouped_terms_with_rounded_coefficients():
     lines = {t: dict(equation_text(t, e, 3)) for t, e in true_model("fang-chen-buaa").expressions.items()}
     assert lines["az"]["thrust"] == "- 7.89e-06 f1*cos(phi)*cos(theta)"

@@ -10,6 +10,7 @@ import pytest
 
 from bridge.errors import UserError
 from identification.dataset import load_dataset, load_datasets
+from identification.flight_evidence import NoFlightError
 from identification.readers import Stream
 from identification.segmentation import parse_window, segment
 from identification.table import Dataset
@@ -137,5 +138,8 @@ def test_an_old_px4_log_gives_rates_from_vehicle_attitude_and_motors_from_pwm(tm
     assert (ds.aux["armed"] == 0).all() and np.median(np.diff(ds.t)) == pytest.approx(0.02)
     att = {d.name: d for d in ulog.data_list}["vehicle_attitude"].data
     assert np.abs(ds.xi[:, 9]).max() <= np.abs(att["rollspeed"]).max() + 1e-6
-    # and the segmentation keeps nothing of a vehicle that never armed
+    # and the segmentation keeps nothing of a vehicle that never armed: a log with rows but no flight
     assert len(segment(ds)) == 0
+    with pytest.raises(NoFlightError, match="never armed in this log"):
+        load_dataset(path)
+    assert len(load_dataset(path, windows=[(2.0, 6.0)])) > 100  # chosen by hand: the user's call

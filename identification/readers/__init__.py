@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from bridge.errors import UserError
+from identification.flight_evidence import no_flight_evidence, raise_no_flight
 from identification.table import Dataset, file_sha256
 from identification.targets import wrap_angle
 
@@ -247,6 +248,9 @@ def make_dataset(
         counts[k] = counts.get(k, 0) + v
     if not keep.any():
         why = ", ".join(f"{k}: {v}" for k, v in counts.items()) or "no samples"
+        evidence = no_flight_evidence(t, aux or {}, xi[:, 2] if len(xi) else None)
+        if evidence is not None:
+            raise_no_flight(f"{fmt} log {path}", evidence, also=f"it gives no complete rows ({why})")
         raise UserError(
             f"{fmt} log {path} gives no complete rows ({why})",
             hint="is the flight long enough, and does the log hold all the streams listed?",

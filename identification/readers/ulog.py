@@ -422,16 +422,7 @@ def read_ulog_dataset(
         tgt = np.concatenate((values[s_acc.name], values[s_dw.name]), axis=1)
     else:
         tgt = values[s_sens.name]
-    try:
-        ds = make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes, aux=aux)
-    except UserError as exc:
-        if "armed" in aux and not (aux["armed"] > 0.5).any():
-            raise UserError(
-                f"{exc.args[0]}; the vehicle was never armed in this log (vehicle_status.arming_state), "
-                "so it holds no flight",
-                hint="use a log of a flight: armed, airborne, with a valid local position",
-            ) from None
-        raise
+    ds = make_dataset(path, "ulog", targets, timeline, xi, u, tgt, filt, notes, aux=aux)  # no flight: says so
     ds.u_from_throttle = rotor is None and not use_esc
     return ds
 
