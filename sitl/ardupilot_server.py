@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import signal
 import socket
-import struct
 import sys
 import time
 from dataclasses import dataclass, fields
@@ -218,18 +217,15 @@ class ArduPilotServer:
             next_status = now + opts.status_interval if opts.status_interval else math.inf
             last_packet = now
             status_steps, status_wall = 0, now
-            # A blocking socket with the wait bound in the kernel (SO_RCVTIMEO): one system call per
-            # receive and per send (a Python timeout polls before each); a signal's handler runs, then the
-            # wait resumes for at most MAX_WAIT_S.
+            # A Python socket timeout (poll before each call). A blocking socket with the bound in
+            # SO_RCVTIMEO makes half the system calls but measured 10-20 us more CPU per frame here.
             sock = self.sock
-            sock.settimeout(None)
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
-                            struct.pack("ll", int(MAX_WAIT_S), int(MAX_WAIT_S % 1 * 1e6)))
+            sock.settimeout(MAX_WAIT_S)
             recvfrom, sendto, handle, monotonic = sock.recvfrom, sock.sendto, self.handle, time.monotonic
             while not self._stop and not self._done():
                 try:
                     data, sender = recvfrom(4096)
-                except OSError:  # the wait bound (EAGAIN), or e.g. ICMP port unreachable of an earlier reply
+                except OSError:  # the wait bound (TimeoutError), or e.g. ICMP port unreachable of a reply
                     data = None
                 now = monotonic()
                 if data is not None:
