@@ -112,9 +112,9 @@ def test_arducopter_flies_the_sitl_is_identified_and_dies_mid_flight(tmp_path):
     assert re.search(r"attitude from ANG at \d{3} Hz", said), said[-3000:]
     fits = re.search(r"motor commands at \d{3} Hz from RATE's mixer .* R\^2 per motor ([\d., ]+)\)", said)
     assert fits and min(float(r) for r in fits.group(1).split(", ")) > 0.99, said[-3000:]
-    # the vehicle's true equations explain the log's roll and pitch accelerations: the loop-rate data are
-    # consistent (from the 10 Hz RCOU the same equations reach R^2 0.26 / 0.40 on bench/ardupilot_loop.py's
-    # flights)
+    # the vehicle's true equations explain the log's lateral and roll accelerations, the axes the lateral
+    # chirp excites: the loop-rate data are consistent (measured 0.994 / 0.967; from the 10 Hz RCOU the same
+    # equations reach dwx R^2 0.26 on bench/ardupilot_loop.py's flights)
     true_model = tmp_path / "true.yaml"
     subprocess.run([sys.executable, "-m", "quadsr.cli", "model-from-vehicle", "--vehicle", "fang-chen-buaa",
                     "-o", str(true_model)], check=True, capture_output=True, cwd=REPO, timeout=120)
@@ -123,7 +123,7 @@ def test_arducopter_flies_the_sitl_is_identified_and_dies_mid_flight(tmp_path):
                          capture_output=True, text=True, cwd=REPO, timeout=240)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     r2 = {m.group(1): float(m.group(2)) for m in R2_ROW.finditer(run.stdout)}
-    assert r2["dwx"] > 0.9 and r2["dwy"] > 0.9, r2
+    assert r2["ay"] > 0.9 and r2["dwx"] > 0.9, r2
 
 
 @pytest.mark.parametrize(
