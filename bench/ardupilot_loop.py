@@ -5,26 +5,35 @@ EKF on GPS, arm in GUIDED, take off to 5 m, hold 10 s, then ArduCopter's own Sys
 (position-controlled axes: 18 and 19 = velocity input lateral/longitudinal), land, disarm. The first is the
 training flight, the second (other magnitudes and frequencies) the validation flight. Printed:
 - the ceiling: ArduCopter's frames per second against a stationary responder (no physics) now;
-- the real-time factor in flight (ArduCopter's simulated seconds per wall second, take-off to landing);
+- the real-time factor in flight (ArduCopter's simulated seconds per wall second, take-off to landing), and
+  the CPU seconds per simulated second of ArduCopter, the SITL and this script over the same span, with the
+  load average (other jobs on the machine lower the wall-clock figure, much less the CPU ones);
 - the hover hold: largest distance from the point 5 m above take-off over 10 s, in ArduPilot's estimate
   and in the truth (.tlog);
-- identification: `quadsr identify` on the training flight's truth .tlog and on its DataFlash log, then
-  `quadsr validate` on the validation flight's: R^2 per target.
+- identification: `quadsr identify` on the training flight's truth .tlog and on its DataFlash log (logged
+  with the LOG_BITMASK of `quadsr ardupilot-params`; IMU targets and the EKF's), then `quadsr validate` on
+  the validation flight's: R^2 per target.
 
 Then a third session at --guided-speedup (the companion is not in lockstep: it must keep up with
 ArduPilot's clock): quadsr's model-derived companion flies hover (1 m above the EKF origin), Case I and
 Case II through GUIDED (`quadsr fly --autopilot tcp:...`, SET_ATTITUDE_TARGET attitude + thrust), each
-followed by LAND: RMS, RMS after 5 s and final 3-D error from quadsr's truth .tlog.
+followed by LAND: RMS, RMS after 5 s and final 3-D error from quadsr's truth .tlog; in one table beside
+quadsr's own companion flying the same flights directly on the HIL link, and beside Case I / II through PX4
+OFFBOARD read from a bench/px4_loop.py --out folder (--px4-out).
 
 PASS lines: GUIDED final error < 0.15 m on each trajectory, real-time factor >= 5 (the issue's floor with
 --speedup on 2 cores), hold within 0.15 m in both, R^2 >= 0.99 for every target from the truth .tlog.
 
 Usage: python bench/ardupilot_loop.py [--ardupilot DIR] [--speedup 100] [--out DIR] [--budget 30]
+                                     [--px4-out DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import math
+import os
 import re
 import signal
 import socket
@@ -50,8 +59,14 @@ CHIRPS = {
     "train": [(18, 0.7, 0.5, 2.0), (19, 0.7, 0.5, 2.0)],
     "validate": [(19, 0.5, 0.6, 2.5), (18, 0.5, 0.6, 2.5)],
 }
-# ATT and RATE at the loop rate (LOG_BITMASK bit 0, ATTITUDE_FAST, on ArduCopter's default 176126)
-LOG_PARAMS = "LOG_BITMASK 176127\n"
+CHILD_PIDS = re.compile(r"ArduCopter pid (\d+) \(SITL pid (\d+)\)")
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time (s) a process has used so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
 def truth_hold(tlog: Path, start: float, seconds: float, target_height: float) -> float:
@@ -74,19 +89,22 @@ def truth_time_at_height(tlog: Path, height: float, tolerance: float) -> float:
 
 
 def fly(name: str, args, out: Path) -> dict:
-    """One session: take-off, hold, chirps, landing. Returns its figures and file paths."""
-    extra_parm = out / "log-fast.parm"
-    extra_parm.write_text(LOG_PARAMS)
+    """One session: take-off, hold, chirps, landing. Returns its figures and file paths.
+
+    ArduCopter logs with the LOG_BITMASK `quadsr ardupilot-params` writes (ANG, RATE, IMU at the loop rate).
+    CPU seconds per simulated second of each process (ArduCopter, the SITL, this flight script) are taken
+    over the flight, take-off to landing, beside the wall-clock real-time factor and the load average."""
     tlog = out / f"{name}.tlog"
     ap = ArduPilotProcess(Path(args.ardupilot), out / f"ap-{name}", tlog, speedup=args.speedup,
-                          extra=["--param", str(extra_parm), "--sensors", "realistic"])
+                          extra=["--sensors", "realistic"])
     try:
-        ap.arducopter_pid()
+        pids = [int(p) for p in ap.wait_for(CHILD_PIDS).groups()]
         link = ArduCopterLink(ap.mavlink, wall_timeout=120.0)
         ekf = link.wait_ekf_gps(180.0)
         link.set_mode(GUIDED)
         link.arm(60.0)
         wall0, sim0 = time.monotonic(), link.sim_time
+        cpu0 = [cpu_seconds(p) for p in pids] + [time.process_time()]
         link.takeoff(HEIGHT, 40.0, 0.15)
         link.fly_for(3.0)
         start = link.sim_time
@@ -96,7 +114,11 @@ def fly(name: str, args, out: Path) -> dict:
         chirps = [link.system_id(axis, mag, f0, f1, t_fade=1.0, t_rec=10.0)
                   for axis, mag, f0, f1 in CHIRPS[name]]
         link.land(90.0)
-        rtf = (link.sim_time - sim0) / (time.monotonic() - wall0)
+        sim_s = link.sim_time - sim0
+        rtf = sim_s / (time.monotonic() - wall0)
+        cpu = [(b - a) / sim_s for a, b in zip(cpu0, [cpu_seconds(p) for p in pids] + [time.process_time()],
+                                               strict=True)]
+        load = os.getloadavg()[0]
         link.close()
     finally:
         ap.stop()
@@ -104,23 +126,79 @@ def fly(name: str, args, out: Path) -> dict:
     truth = truth_hold(tlog, reached + 3.0, HOLD_S, HEIGHT)
     bins = sorted((out / f"ap-{name}" / "logs").glob("*.BIN"))
     return {"ekf_s": ekf, "rtf": rtf, "estimate_hold_m": estimate, "truth_hold_m": truth, "tlog": tlog,
-            "bin": bins[0] if bins else None, "chirps": chirps}
+            "bin": bins[0] if bins else None, "chirps": chirps, "cpu": dict(zip(PROCESSES, cpu, strict=True)),
+            "load": load}
+
+
+PROCESSES = ("ArduCopter", "SITL", "flight script")
 
 
 GUIDED_FLIGHTS = (("hover", 10.0), ("case1", 20.0), ("case2", 10.5))  # (trajectory, duration s)
 HOVER_YAML = 'name: hover\nduration: 10\nexpressions: {x: "0", y: "0", z: "-1.0", yaw: "0"}\n'
-FLY_LINE = re.compile(r"RMS ([\d.]+) m, RMS after 5 s ([\d.]+|n/a) mm?, final ([\d.]+) mm")
+FLY_LINE = re.compile(r"RMS ([\d.]+) m, RMS after 5 s ([\d.]+ mm|n/a),.*?final ([\d.]+) mm")
+Row = tuple[float, float, float]  # RMS, RMS after 5 s, final 3-D error (m, truth)
 
 
-def guided(args, out: Path) -> dict[str, tuple[float, float, float]]:
-    """The companion through GUIDED: trajectory -> (RMS m, RMS after 5 s m, final m) from the truth."""
+def fly_figures(text: str) -> Row:
+    """(RMS, RMS after 5 s, final) in m from `quadsr fly`'s summary line (nan after 5 s when n/a)."""
+    m = FLY_LINE.search(text)
+    if m is None:
+        raise RuntimeError(f"no summary line in quadsr fly's output:\n{text[-2000:]}")
+    after = float("nan") if m.group(2) == "n/a" else float(m.group(2).split()[0]) * 1e-3
+    return float(m.group(1)), after, float(m.group(3)) * 1e-3
+
+
+def flight_files(out: Path) -> tuple[Path, dict[str, str]]:
+    """The true model of fang-chen-buaa and the trajectory argument of each flight (hover: a file)."""
     from bridge.vehicle import load_vehicle
     from identification.true_model import write_true_model
-    from quadsr.ardupilot_process import TCP_BASE
 
     model = out / "true.yaml"
     write_true_model(load_vehicle("fang-chen-buaa"), model)
     (out / "hover.yaml").write_text(HOVER_YAML)
+    return model, {name: str(out / "hover.yaml") if name == "hover" else name for name, _ in GUIDED_FLIGHTS}
+
+
+def own_companion(out: Path) -> dict[str, Row]:
+    """quadsr's own companion flying the same flights directly on the HIL link (lockstep SITL, ideal
+    sensors, true state fed back, from the ground), each against a fresh SITL."""
+    from quadsr.sitl_process import SitlProcess
+
+    model, trajectories = flight_files(out)
+    rows = {}
+    for name, duration in GUIDED_FLIGHTS:
+        with SitlProcess(["--sensors", "ideal"]) as sitl:
+            rows[name] = fly_figures(quadsr("fly", "--model", str(model), "--trajectory", trajectories[name],
+                                            "--duration", f"{duration:g}", "--hil", sitl.hil, "--out",
+                                            str(out / f"own-{name}"), "--no-progress"))
+    return rows
+
+
+def px4_rows(folder: Path) -> dict[str, Row]:
+    """Case I / II through PX4 OFFBOARD from a bench/px4_loop.py --out folder (its px4-caseN/flight/
+    steps.csv, the truth columns against the reference); empty when it holds none."""
+    rows = {}
+    for name in ("case1", "case2"):
+        steps = folder / f"px4-{name}" / "flight" / "steps.csv"
+        if not steps.is_file():
+            continue
+        with steps.open() as f:
+            table = [(float(r["t"]), math.dist((float(r["true_x"]), float(r["true_y"]), float(r["true_z"])),
+                                               (float(r["ref_x"]), float(r["ref_y"]), float(r["ref_z"]))))
+                     for r in csv.DictReader(f)]
+        if not table:  # an unfinished flight
+            continue
+        after = [e for t, e in table if t >= 5.0]
+        rms_after = math.sqrt(sum(e * e for e in after) / len(after)) if after else float("nan")
+        rows[name] = (math.sqrt(sum(e * e for _, e in table) / len(table)), rms_after, table[-1][1])
+    return rows
+
+
+def guided(args, out: Path) -> dict[str, Row]:
+    """The companion through GUIDED: trajectory -> (RMS m, RMS after 5 s m, final m) from the truth."""
+    from quadsr.ardupilot_process import TCP_BASE
+
+    model, trajectories = flight_files(out)
     tlog = out / "guided.tlog"
     ap = ArduPilotProcess(Path(args.ardupilot), out / "ap-guided", tlog, speedup=args.guided_speedup)
     rows = {}
@@ -128,13 +206,15 @@ def guided(args, out: Path) -> dict[str, tuple[float, float, float]]:
         gcs = ArduCopterLink(f"tcp:127.0.0.1:{TCP_BASE + 2 + 10 * ap.instance}", wall_timeout=120.0)
         gcs.wait_ekf_gps(180.0)
         for name, duration in GUIDED_FLIGHTS:
-            trajectory = str(out / "hover.yaml") if name == "hover" else name
-            text = quadsr("fly", "--model", str(model), "--trajectory", trajectory, "--duration",
-                          f"{duration:g}", "--autopilot", ap.mavlink, "--truth", str(tlog), "--out",
-                          str(out / f"guided-{name}"), "--no-progress")
-            m = FLY_LINE.search(text)
-            after = float("nan") if m.group(2) == "n/a" else float(m.group(2)) * 1e-3
-            rows[name] = (float(m.group(1)), after, float(m.group(3)) * 1e-3)
+            try:
+                rows[name] = fly_figures(quadsr("fly", "--model", str(model), "--trajectory",
+                                                trajectories[name], "--duration", f"{duration:g}",
+                                                "--autopilot", ap.mavlink, "--truth", str(tlog), "--out",
+                                                str(out / f"guided-{name}"), "--no-progress"))
+            except RuntimeError as exc:  # e.g. ArduPilot's EKF failsafe when the companion falls behind
+                said = [line for line in str(exc).splitlines() if "ArduPilot" in line]
+                print(f"GUIDED {name} failed: {said[-1] if said else str(exc)[-300:]}", flush=True)
+                rows[name] = (math.nan, math.nan, math.nan)
             drain_until = time.monotonic() + 10.0  # the GCS's backlog of the flight, read at once
             while gcs.poll(0.01) is not None and time.monotonic() < drain_until:
                 pass
@@ -200,9 +280,10 @@ def r2_table(text: str) -> dict[str, float]:
     return out
 
 
-def identify_and_validate(train: Path, validate: Path, out: Path, budget: int, extra: list[str]) -> dict:
+def identify_and_validate(train: Path, validate: Path, out: Path, budget: int, extra: list[str],
+                          tag: str = "") -> dict:
     """R^2 per target of a model identified on train, evaluated on validate."""
-    model = out / f"model-{train.suffix.lstrip('.')}.yaml"
+    model = out / f"model-{tag or train.suffix.lstrip('.')}.yaml"
     quadsr("identify", str(train), "-o", str(model), "--engine", "sparse", "--budget", str(budget),
            "--seed", "0", "--no-progress", *extra)
     folder = out / f"validation-{model.stem}"
@@ -218,6 +299,8 @@ def main() -> int:
     parser.add_argument("--guided-speedup", type=float, default=4.0,
                         help="ArduPilot's --speedup for the GUIDED companion flights")
     parser.add_argument("--out", default=None)
+    parser.add_argument("--px4-out", default=None,
+                        help="a bench/px4_loop.py --out folder: its Case I/II through PX4 in the table")
     parser.add_argument("--budget", type=int, default=30, help="identification budget per target, s")
     args = parser.parse_args()
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ardupilot-loop-"))
@@ -235,25 +318,40 @@ def main() -> int:
         print(f"{name}: EKF on GPS at {f['ekf_s']:.1f} s; real-time factor in flight {f['rtf']:.2f}; hold "
               f"over {HOLD_S:g} s at {HEIGHT:g} m: ArduPilot's estimate within {f['estimate_hold_m']:.3f} m, "
               f"truth within {f['truth_hold_m']:.3f} m; chirps: {chirps}", flush=True)
+        print(f"{name}: CPU s per simulated s in flight: "
+              + ", ".join(f"{k} {v:.3f}" for k, v in f["cpu"].items())
+              + f" (load average {f['load']:.1f} on {os.cpu_count()} cores)", flush=True)
     rows = guided(args, out)
-    for name, (rms, after, final) in rows.items():
-        print(f"GUIDED companion (--speedup {args.guided_speedup:g}), {name}: RMS {rms:.4f} m, RMS after 5 s "
-              f"{after:.4f} m, final {final:.4f} m (truth)", flush=True)
+    own = own_companion(out)
+    px4 = px4_rows(Path(args.px4_out)) if args.px4_out else {}
+    print(f"\nTracking, RMS / RMS after 5 s / final 3-D error in mm from quadsr's truth (GUIDED at --speedup "
+          f"{args.guided_speedup:g}; own companion: lockstep HIL, ideal sensors, true state; PX4 OFFBOARD: "
+          + (f"from {args.px4_out}" if args.px4_out else "not given (--px4-out DIR of bench/px4_loop.py)")
+          + ")")
+    print("| flight | through ArduCopter GUIDED | quadsr's own companion | through PX4 OFFBOARD |")
+    print("|---|---|---|---|")
+    for name, duration in GUIDED_FLIGHTS:
+        cells = [" / ".join(f"{v * 1000:.1f}" for v in table[name]) if name in table else "-"
+                 for table in (rows, own, px4)]
+        print(f"| {name} ({duration:g} s) | " + " | ".join(cells) + " |", flush=True)
     r2_tlog = identify_and_validate(flights["train"]["tlog"], flights["validate"]["tlog"], out, args.budget,
                                     [])
     print("R^2 on the validation flight, model from the training flight's truth .tlog: "
           + ", ".join(f"{k} {v:.6f}" for k, v in r2_tlog.items()), flush=True)
-    r2_bin = {}
     if flights["train"]["bin"] and flights["validate"]["bin"]:
-        r2_bin = identify_and_validate(flights["train"]["bin"], flights["validate"]["bin"], out, args.budget,
-                                       ["--motor-curve", "fang-chen-buaa"])
-        print("R^2 on the validation flight, model from the training flight's DataFlash log (RCOU through "
-              "the motor curve, EKF states): " + ", ".join(f"{k} {v:.4f}" for k, v in r2_bin.items()),
-              flush=True)
-    checks = [(final < 0.15, f"GUIDED {name}: final error {final:.4f} m < 0.15") for name, (_, _, final)
-              in rows.items()]
+        for targets in ("sensors", "truth"):
+            r2_bin = identify_and_validate(flights["train"]["bin"], flights["validate"]["bin"], out,
+                                           args.budget, ["--motor-curve", "fang-chen-buaa", "--targets-from",
+                                                         targets], tag=f"bin-{targets}")
+            print(f"R^2 on the validation flight, model from the training flight's DataFlash log "
+                  f"(--targets-from {targets}; ANG, RATE, IMU at the loop rate, motor outputs rebuilt at the "
+                  "loop rate from RATE through a mixer fitted on RCOU, then the motor curve; EKF velocity at "
+                  "25 Hz): " + ", ".join(f"{k} {v:.4f}" for k, v in r2_bin.items()), flush=True)
+    checks = [(final < 0.15, f"GUIDED {name}: final error {final:.4f} m < 0.15 (nan: the flight failed)")
+              for name, (_, _, final) in rows.items()]
     for name, f in flights.items():
-        checks.append((f["rtf"] >= 5.0, f"{name}: real-time factor {f['rtf']:.2f} >= 5"))
+        checks.append((f["rtf"] >= 5.0, f"{name}: real-time factor {f['rtf']:.2f} >= 5 (load average "
+                                        f"{f['load']:.1f} on {os.cpu_count()} cores)"))
         checks.append((f["estimate_hold_m"] < 0.15 and f["truth_hold_m"] < 0.15,
                        f"{name}: hold within 0.15 m (estimate {f['estimate_hold_m']:.3f}, truth "
                        f"{f['truth_hold_m']:.3f})"))

@@ -23,6 +23,10 @@ SPIN_ARM_MARGIN = 0.02  # MOT_SPIN_ARM above the throttle where the rotors start
 SPIN_MIN_MARGIN = 0.05  # MOT_SPIN_MIN above it
 HOVER_RANGE = (0.125, 0.6875)  # MOT_THST_HOVER's allowed range in ArduCopter
 BATTERY_VOLTAGE = 16.8  # V, a full 4S pack (quadsr has no battery model: compensation is switched off)
+LOG_BITMASK_DEFAULT = 176126  # ArduCopter's default LOG_BITMASK
+ATTITUDE_FAST = 1 << 0  # ANG (attitude) and RATE (rates, the mixer's inputs) at the loop rate, not 10 Hz
+IMU_FAST = 1 << 18  # IMU (gyro, specific force) at the loop rate, not 25 Hz
+LOG_BITMASK = LOG_BITMASK_DEFAULT | ATTITUDE_FAST | IMU_FAST
 
 
 def thrust_expo_fit(vehicle: VehicleConfig, spin_min: float, spin_max: float) -> tuple[float, float]:
@@ -59,6 +63,13 @@ def ardupilot_parameters(vehicle: VehicleConfig) -> tuple[dict[str, float], list
         f"rotors start at throttle {start:.3f} (-wb/Cr); MOT_SPIN_ARM {spin_arm:g}, "
         f"MOT_SPIN_MIN {spin_min:g}",
     ]
+    notes.append(
+        f"LOG_BITMASK {LOG_BITMASK}: ArduCopter's default {LOG_BITMASK_DEFAULT} plus ATTITUDE_FAST (ANG and "
+        "RATE at the loop rate: attitude, body rates and the mixer's inputs, from which quadsr identify "
+        "rebuilds the motor outputs at the loop rate, as ArduCopter logs RCOU only at 10 Hz) and IMU_FAST "
+        "(IMU at the loop rate, for --targets sensors); INS_LOG_BAT_* stay off (bursts of raw IMU for FFT, "
+        "not rows)"
+    )
     if not HOVER_RANGE[0] <= hover <= HOVER_RANGE[1]:
         clipped = min(max(hover, HOVER_RANGE[0]), HOVER_RANGE[1])
         notes.append(f"hover demand {hover:.4f} is outside ArduCopter's range {HOVER_RANGE}: written as "
@@ -81,6 +92,7 @@ def ardupilot_parameters(vehicle: VehicleConfig) -> tuple[dict[str, float], list
         "BATT_MONITOR": 4,  # analog voltage and current (ArduPilot's simulated battery)
         "BATT_CAPACITY": 5000,  # mAh
         "SIM_BATT_VOLTAGE": BATTERY_VOLTAGE,
+        "LOG_BITMASK": LOG_BITMASK,  # what identification needs at the loop rate (see the notes)
     }
     return params, notes
 

@@ -15,6 +15,7 @@ import time
 import pytest
 
 from bridge.link import Endpoint
+from bridge.tlog import read_tlog
 from bridge.vehicle import load_vehicle
 from identification.readers.tlog import read_tlog_dataset
 from sitl.ardupilot_json import (
@@ -24,9 +25,10 @@ from sitl.ardupilot_json import (
     pack_servo_packet,
     parse_servo_packet,
     sensor_json,
+    servo_motors,
     throttles_from_pwm,
 )
-from sitl.ardupilot_server import ArduPilotOptions, ArduPilotServer
+from sitl.ardupilot_server import TLOG_BATCH_USEC, ArduPilotOptions, ArduPilotServer
 from sitl.dynamics import Quadrotor
 from tests.conftest import REPO
 
@@ -39,6 +41,10 @@ def test_servo_packet_round_trip_16_and_32_channels():
     assert (p16.frame_rate, p16.frame_count, p16.pwm[:3], len(p16.pwm)) == (1200, 7, (1100, 1101, 1102), 16)
     p32 = parse_servo_packet(pack_servo_packet(2**32 - 1, [1500] * 32))
     assert p32.frame_count == 2**32 - 1 and len(p32.pwm) == 32
+    # the per-frame path reads the same frame count and motor channels
+    assert servo_motors(pack_servo_packet(7, [1100 + i for i in range(16)])) == (7, 1100, 1101, 1102, 1103)
+    assert servo_motors(pack_servo_packet(2**32 - 1, [1900, 1800, 1700, 1600] + [0] * 28)) == (
+        2**32 - 1, 1900, 1800, 1700, 1600)
 
 
 @pytest.mark.parametrize(
@@ -54,9 +60,10 @@ def test_servo_packet_round_trip_16_and_32_channels():
     ],
 )
 def test_bad_packets_are_refused_with_their_reason(data, reason):
-    with pytest.raises(BadPacket) as info:
-        parse_servo_packet(data)
-    assert info.value.reason == reason
+    for parse in (parse_servo_packet, servo_motors):
+        with pytest.raises(BadPacket) as info:
+            parse(data)
+        assert info.value.reason == reason
     assert MAGIC_32 != MAGIC_16
 
 
@@ -95,17 +102,21 @@ class ArduPilotStandIn:
         self.sock.close()
 
 
-@pytest.mark.e2e
-def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
-    log = tmp_path / "truth.tlog"
+def start_backend(log) -> tuple[subprocess.Popen, int]:
+    """`quadsr sitl --ardupilot` on a free port with ideal sensors, logging to log; (process, its port)."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "quadsr.cli", "sitl", "--ardupilot", "udp:127.0.0.1:0", "--log", str(log),
          "--sensors", "ideal", "--status-interval", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO)
+    return proc, int(LISTENING.search(proc.stdout.readline()).group(2))
+
+
+@pytest.mark.e2e
+def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
+    log = tmp_path / "truth.tlog"
+    proc, port = start_backend(log)
     ap = None
     try:
-        first = proc.stdout.readline()
-        port = int(LISTENING.search(first).group(2))
         ap = ArduPilotStandIn(port)
         # bad packets first: dropped, counted, never answered, never stopping the server
         for bad in (b"junk", (MAGIC_16 + 3).to_bytes(2, "little") + bytes(38),
@@ -156,6 +167,30 @@ def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
     ds = read_tlog_dataset(log)
     assert len(ds.t) > 50
     assert ds.u[:, 0].max() == pytest.approx(600.0, rel=0.02)  # true rotor speeds settle at 600 rad/s
+
+
+@pytest.mark.e2e
+def test_a_killed_backend_leaves_a_readable_truth_log(tmp_path):
+    """The truth .tlog is written in batches of TLOG_BATCH_USEC of simulated time: SIGKILL loses at most that
+    much, and the file reads as any quadsr flight."""
+    log = tmp_path / "truth.tlog"
+    proc, port = start_backend(log)
+    ap = None
+    try:
+        ap = ArduPilotStandIn(port)
+        frames = 450  # 0.45 s of 1 ms steps
+        for k in range(frames):
+            ap.frame(k, (HOVER_PWM,) * 4)
+    finally:
+        if ap is not None:
+            ap.close()
+        proc.kill()
+        proc.wait(timeout=20)
+    stamps = [m.time_usec * 1e-6 for _, m in read_tlog(log) if m.get_type() == "HIL_SENSOR"]
+    assert stamps == pytest.approx([0.004 * k for k in range(len(stamps))])  # whole records, none lost
+    assert frames * 1e-3 - TLOG_BATCH_USEC * 1e-6 <= stamps[-1] <= frames * 1e-3, stamps[-1]
+    ds = read_tlog_dataset(log)
+    assert ds.u[-1, 0] > 100.0  # the rotors were spinning up: commands and states both logged
 
 
 def test_one_millisecond_steps_track_the_four_millisecond_physics():

@@ -39,6 +39,8 @@ def test_ardupilot_thrust_model_matches_the_vehicle():
     assert curve.speed_for_throttle(params["MOT_SPIN_ARM"] - 0.03) == 0.0
     assert (params["FRAME_CLASS"], params["FRAME_TYPE"]) == (1, 1)
     assert (params["MOT_PWM_MIN"], params["MOT_PWM_MAX"]) == (1000, 2000)
+    # ArduCopter's default logging plus ATTITUDE_FAST (bit 0) and IMU_FAST (bit 18): identification's rates
+    assert params["LOG_BITMASK"] == 176126 | 1 | 1 << 18
 
 
 def test_expo_fit_tracks_the_curve_shape():

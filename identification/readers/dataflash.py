@@ -42,10 +42,12 @@ from bridge.errors import UserError
 from bridge.geodesy import flat_earth_ned
 from identification.motor_model import ThrustCurve
 from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.readers.ardupilot_mixer import INPUTS, fit_mixer, loop_rate_outputs
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
+    contiguous_runs,
     nominal_step,
     sensor_targets,
     stream_derivative,
@@ -53,7 +55,7 @@ from identification.targets import (
 
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 MOTOR_FUNCTIONS = (33, 34, 35, 36)  # SERVOn_FUNCTION of Motor1..Motor4
-WANTED = ("ATT", "RATE", "IMU", "XKF1", "NKF1", "EKF1", "POS", "ESC", "RCOU", "BAT", "EV", "ARM")
+WANTED = ("ATT", "ANG", "RATE", "IMU", "XKF1", "NKF1", "EKF1", "POS", "ESC", "RCOU", "BAT", "EV", "ARM")
 EV_ARMED, EV_DISARMED = 10, 11  # EV Id of ArduCopter's ARMED and DISARMED events
 
 
@@ -197,6 +199,63 @@ def _rcou_stream(
     return Stream("RCOU", t, thr)
 
 
+def _attitude_stream(att: list[Any], ang: list[Any], path: Path, notes: list[str]) -> Stream:
+    """Roll, pitch, yaw (rad) from ANG when it is faster than ATT (ArduCopter 4.6+ logs ATT at 10 Hz and, with
+    LOG_BITMASK's ATTITUDE_FAST, ANG at the loop rate), else from ATT."""
+    cols = ("Roll", "Pitch", "Yaw")
+    euler = np.radians(np.column_stack([_field(att, c, path) for c in cols]))
+    s_att = Stream("ATT", _times(att, path), euler, kind="angle")
+    if len(ang) > 1 and all(hasattr(ang[0], c) for c in cols):
+        s_ang = Stream("ANG", _times(ang, path),
+                       np.radians(np.column_stack([_field(ang, c, path) for c in cols])), kind="angle")
+        if s_ang.rate_hz > 1.5 * s_att.rate_hz:
+            notes.append(f"attitude from ANG at {s_ang.rate_hz:.0f} Hz (ATT is at {s_att.rate_hz:.0f} Hz)")
+            return s_ang
+    return s_att
+
+
+def _loop_rate_motors(s_thr: Stream, rate: list[Any], params: dict[str, float], path: Path,
+                      notes: list[str]) -> Stream:
+    """The motor commands at RATE's rate, rebuilt from its mixer inputs through a mixer fitted on the log's
+    RCOU (identification.readers.ardupilot_mixer), when RCOU is much slower and the fit holds; else s_thr."""
+    if len(rate) < 2 or not all(hasattr(rate[0], c) for c in INPUTS):
+        return s_thr
+    rate_t = _times(rate, path)
+    s_rate = Stream("RATE", rate_t, np.zeros(len(rate_t)))
+    if not s_rate.rate_hz > 2.0 * s_thr.rate_hz:
+        return s_thr
+    inputs = np.column_stack([_field(rate, c, path) for c in INPUTS])
+    fit = fit_mixer(rate_t, inputs, s_thr.t, s_thr.values, params)
+    if not fit.usable:
+        notes.append(f"motor commands from RCOU at {s_thr.rate_hz:.0f} Hz: not rebuilt at RATE's "
+                     f"{s_rate.rate_hz:.0f} Hz ({fit.reason})")
+        return s_thr
+    now, _ = s_thr.resample(rate_t)
+    notes.append(f"motor commands at {s_rate.rate_hz:.0f} Hz from RATE's mixer inputs (AOut, ROut, POut, "
+                 f"YOut) through a mixer fitted on RCOU at {s_thr.rate_hz:.0f} Hz ({fit.samples} samples; "
+                 "R^2 per motor " + ", ".join(f"{r:.4f}" for r in fit.r2) + ")")
+    return Stream("RATE mixer", rate_t, loop_rate_outputs(fit, rate_t, inputs, now, params))
+
+
+def _uniform_imu(t: np.ndarray, values: np.ndarray, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """IMU samples (times s, values) on a uniform grid when their times jitter (a 400 Hz loop on a 1 ms
+    simulator clock logs at 2 and 3 ms spacings, which no fixed-step differentiator spans): linearly
+    interpolated at their mean spacing, NaN across gaps; unchanged when already uniform."""
+    step = nominal_step(t)
+    if len(t) < 3 or len(contiguous_runs(t, step)) <= 1 + len(t) // 1000:
+        return t, values
+    stream = Stream("IMU", t, values)
+    spacing = np.diff(stream.t)
+    mean = float(np.mean(spacing[spacing <= stream.max_gap]))
+    grid = uniform_timeline([stream], 1.0 / mean)
+    out, ok = stream.resample(grid)
+    out[~ok] = np.nan
+    jitter = f"{spacing.min() * 1e3:.1f}-{np.percentile(spacing, 99) * 1e3:.1f}"
+    notes.append(f"IMU times jitter (spacings {jitter} ms): resampled to a uniform {1.0 / mean:.0f} Hz "
+                 "before differentiating")
+    return grid, out
+
+
 def _aux_streams(msgs: dict[str, list[Any]], imu: list[Any], path: Path) -> dict[str, Stream]:
     """Side columns for segmentation and the motor model: armed (EV, ARM), voltage (BAT), accel_dev (IMU).
 
@@ -267,12 +326,7 @@ def read_dataflash_dataset(
     rotor = rotor_model(motor_curve)
     channels = _motor_of_channel(params)
 
-    s_att = Stream(
-        "ATT",
-        _times(att, path),
-        np.radians(np.column_stack([_field(att, c, path) for c in ("Roll", "Pitch", "Yaw")])),
-        kind="angle",
-    )
+    s_att = _attitude_stream(att, msgs["ANG"], path, notes)
     imu = [m for m in msgs["IMU"] if getattr(m, "I", 0) == 0]
     if msgs["RATE"]:
         rate = msgs["RATE"]
@@ -296,6 +350,8 @@ def read_dataflash_dataset(
     s_thr = (
         _rcou_stream(msgs["RCOU"], channels, params, path, [] if use_esc else notes) if msgs["RCOU"] else None
     )
+    if s_thr is not None and not use_esc:
+        s_thr = _loop_rate_motors(s_thr, msgs["RATE"], params, path, notes)
     if use_esc:
         s_rotor = _esc_stream(esc, channels, path)
     else:
@@ -319,9 +375,10 @@ def read_dataflash_dataset(
     else:
         if not imu:
             _need(msgs, "IMU", path, "the 'sensors' targets")
-        ti = _times(imu, path)
-        acc = np.column_stack([_field(imu, c, path) for c in ("AccX", "AccY", "AccZ")])
-        gyro = np.column_stack([_field(imu, c, path) for c in ("GyrX", "GyrY", "GyrZ")])
+        cols = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
+        raw = np.column_stack([_field(imu, c, path) for c in cols])
+        ti, imu_values = _uniform_imu(_times(imu, path), raw, notes)
+        acc, gyro = imu_values[:, :3], imu_values[:, 3:]
         euler, ok = s_att.resample(ti)
         euler[~ok] = np.nan
         g = STANDARD_GRAVITY if gravity is None else float(gravity)
