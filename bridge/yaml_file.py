@@ -187,8 +187,9 @@ class Section:
         return self.child(self.key(name), self.raw(name))
 
     def optional_section(self, name: str) -> Section:
-        """The sub-mapping at this key, an empty one when the key is absent."""
-        return self.child(self.key(name), self.raw(name, {}))
+        """The sub-mapping at this key, an empty one when the key is absent or empty (null)."""
+        value = self.raw(name, None)
+        return self.child(self.key(name), {} if value is None else value)
 
     def sections(self, name: str, what: str, *, min_items: int = 1, default: Any = ...) -> list[Section]:
         """The list of mappings at this key, one Section each ('name[i]'); `what` says what an item is."""
