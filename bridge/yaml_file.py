@@ -69,15 +69,15 @@ def _number_text(text: str) -> float | None:
         return None
 
 
-def float_value(where: str, key: str, value: Any) -> float:
-    """The finite number a key holds; UserError naming where and key otherwise."""
+def float_value(where: str, key: str, value: Any, finite: bool = True) -> float:
+    """The number a key holds (finite unless finite=False); UserError naming where and key otherwise."""
     if isinstance(value, str):
         parsed = _number_text(value)
         value = value if parsed is None else parsed
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise UserError(f"{where}: key '{key}' must be a number, got {describe_value(value)}")
     out = float(value)
-    if not math.isfinite(out):
+    if finite and not math.isfinite(out):
         raise UserError(f"{where}: key '{key}' must be finite, got {value}")
     return out
 
@@ -200,9 +200,9 @@ class Section:
         return [self.child(f"{self.key(name)}[{i}]", item) for i, item in enumerate(items)]
 
     def number(self, name: str, default: Any = ..., *, positive: bool = False, nonnegative: bool = False,
-               low: float | None = None, high: float | None = None) -> float:
-        """A finite float, checked against the bounds asked for."""
-        value = float_value(self.where, self.key(name), self.raw(name, default))
+               low: float | None = None, high: float | None = None, finite: bool = True) -> float:
+        """A float (finite unless finite=False: NaN, inf allowed), checked against the bounds asked for."""
+        value = float_value(self.where, self.key(name), self.raw(name, default), finite)
         check_bounds(self.where, self.key(name), value, positive=positive, nonnegative=nonnegative,
                      low=low, high=high)
         return value

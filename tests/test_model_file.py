@@ -141,9 +141,9 @@ def _good_dict(tmp_path):
 
 
 MALFORMATIONS = [
-    ("empty", lambda d: "", "(document)"),
-    ("not yaml", lambda d: "format: [unclosed\n", "(document)"),
-    ("a list", lambda d: [1, 2], "(document)"),
+    ("empty", lambda d: "", "the file is empty"),
+    ("not yaml", lambda d: "format: [unclosed\n", "YAML syntax error"),
+    ("a list", lambda d: [1, 2], "the top level must be a mapping"),
     ("no format", lambda d: {k: v for k, v in d.items() if k != "format"}, "format"),
     ("other format", lambda d: {**d, "format": "quadsr-model/9"}, "format"),
     ("bad kind", lambda d: {**d, "kind": "guessed"}, "kind"),
@@ -223,7 +223,8 @@ def test_each_malformation_is_a_user_error_naming_file_and_key(tmp_path, label, 
     with pytest.raises(UserError) as info:
         load_model(path)
     text = str(info.value)
-    assert str(path) in text and f": {key}:" in text, text
+    expected = key if " " in key else f"key '{key}'"  # a dotted key, or the words of a whole-file mistake
+    assert str(path) in text and expected in text, text
 
 
 def test_missing_and_unreadable_files_are_user_errors(tmp_path):
