@@ -1,4 +1,5 @@
-"""Shared fixtures: free UDP ports, `quadsr sitl` as a subprocess, a raw HIL companion (real UDP)."""
+"""Shared fixtures: free UDP ports, `quadsr sitl` as a subprocess, a raw HIL companion (real UDP), and the
+paper's vehicle with its true model and the in-process model plant (per test module)."""
 
 from __future__ import annotations
 
@@ -29,6 +30,13 @@ def free_udp_port() -> int:
 def udp_port() -> int:
     """A free UDP port on 127.0.0.1."""
     return free_udp_port()
+
+
+def altitude_sitl_args(seed: int) -> list[str]:
+    """`quadsr sitl` flags for open-loop identification flights: a free HIL port, no GCS, no ground, 200 m up,
+    ideal sensors, this seed, no status lines."""
+    return ["--hil", "udp:127.0.0.1:0", "--no-gcs", "--ground", "none", "--initial-position", "0,0,-200",
+            "--sensors", "ideal", "--seed", str(seed), "--status-interval", "0"]
 
 
 class SitlProcess(OutputProcess):
@@ -160,3 +168,27 @@ def raw_companion() -> Iterator[Callable[..., RawCompanion]]:
     yield make
     for c in made:
         c.close()
+
+
+@pytest.fixture(scope="module")
+def vehicle():
+    """The paper's vehicle (sitl/vehicles/fang-chen-buaa.yaml) as a VehicleConfig."""
+    from bridge.vehicle import load_vehicle
+
+    return load_vehicle("fang-chen-buaa")
+
+
+@pytest.fixture(scope="module")
+def model(vehicle):
+    """The exact model (identification.true_model) of the `vehicle` fixture."""
+    from identification.true_model import true_model
+
+    return true_model(vehicle)
+
+
+@pytest.fixture(scope="module")
+def plant(model, vehicle):
+    """The in-process simulator of `model` with the vehicle's motor lag (controller.simulate.ModelPlant)."""
+    from controller.simulate import ModelPlant
+
+    return ModelPlant(model, motor_time_constant=vehicle.motor.time_constant)

@@ -22,11 +22,6 @@ W_MAX = 1006.6
 
 
 @pytest.fixture(scope="module")
-def vehicle():
-    return load_vehicle("fang-chen-buaa")
-
-
-@pytest.fixture(scope="module")
 def true_exprs(vehicle):
     return true_model_expressions(vehicle)
 
@@ -242,7 +237,6 @@ def test_a_model_with_vector_norms_is_inverted_at_rest():
     norm is smoothed; the law must still be derived (on the ground and at hover v = 0 exactly)."""
     import sympy
 
-    from bridge.vehicle import load_vehicle
     from controller.derivation import NORM_FLOOR, smooth_norms
     from controller.registry import make_controller
     from identification.true_model import true_model

@@ -10,7 +10,6 @@ import pytest
 import yaml
 
 from bridge.errors import UserError
-from bridge.vehicle import load_vehicle
 from identification.excitation import (
     ClosedLoopExcitation,
     RandomSteps,
@@ -21,11 +20,6 @@ from identification.excitation import (
     profiles_dir,
 )
 from identification.hover_stabilizer import HoverStabilizer, Reference
-
-
-@pytest.fixture(scope="module")
-def vehicle():
-    return load_vehicle("fang-chen-buaa")
 
 
 def test_bundled_profiles_load():
