@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,21 +105,32 @@ class OffboardCompanion(Companion):
                             link.link.stats.as_dict(), list(link.state.status_texts))
 
     # -------------------------------------------------------------------------------------------------
-    def _start(self, link: OffboardLink) -> str:
-        """Connect, request the estimate, pre-stream, OFFBOARD, arm: '' when flying, else why not."""
+    def _await_estimate(self, link: OffboardLink, not_running: str, no_estimate: Callable[[], str]) -> str:
+        """Connect, ask for the attitude and local position at rate_hz and wait for both: '' or why not
+        (`not_running` follows the connect timeout's message; `no_estimate()` says why none came)."""
         s = self.offboard
         try:
             link.connect(s.connect_timeout)
         except TimeoutError as exc:
-            return f"{exc}: is PX4 running (quadsr px4)? its offboard port is 14580+N"
+            return f"{exc}: {not_running}"
         for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
             link.request_rate(msg_id, s.rate_hz)
-        st = link.state
         deadline = time.monotonic() + s.connect_timeout
-        while st.position is None or st.quaternion is None:
+        while link.state.position is None or link.state.quaternion is None:
             if time.monotonic() > deadline:
-                return f"PX4 at {s.autopilot} sent no position and attitude within {s.connect_timeout:g} s"
+                return no_estimate()
             link.poll(0.1)
+        return ""
+
+    def _start(self, link: OffboardLink) -> str:
+        """Connect, request the estimate, pre-stream, OFFBOARD, arm: '' when flying, else why not."""
+        s = self.offboard
+        why = self._await_estimate(
+            link, "is PX4 running (quadsr px4)? its offboard port is 14580+N",
+            lambda: f"PX4 at {s.autopilot} sent no position and attitude within {s.connect_timeout:g} s")
+        if why:
+            return why
+        st = link.state
         yaw = float(euler_from_quaternion(st.quaternion)[2])
         level = quaternion_from_euler(0.0, 0.0, yaw)
         start_ms = st.time_boot_ms
