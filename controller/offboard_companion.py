@@ -29,9 +29,17 @@ from bridge.messages import mavlink
 from bridge.offboard import PX4, AutopilotFlavour, OffboardLink
 from bridge.px4_thrust import fit_thrust_model, normalised_thrust
 from bridge.rotations import euler_from_quaternion, quaternion_from_euler
-from bridge.tlog import TlogWriter, read_tlog
+from bridge.tlog import read_tlog
 from bridge.vehicle import VehicleConfig
-from controller.companion import CRASH_TILT, CSV_COLUMNS, Companion, FlightResult, FlightSettings, StepLog
+from controller.companion import (
+    CRASH_TILT,
+    CSV_COLUMNS,
+    Companion,
+    FlightResult,
+    FlightSettings,
+    StepLog,
+    open_flight_outputs,
+)
 from controller.plugin import Controller, Trajectory, VehicleState
 
 OFFBOARD_LOSS_MS = 1000  # PX4's COM_OF_LOSS_T default (1 s): setpoints older than this trip its failsafe
@@ -78,11 +86,7 @@ class OffboardCompanion(Companion):
     def fly(self, out_dir: str | Path) -> FlightResult:
         """Connect, stream, switch to OFFBOARD, arm, fly, hand back (AUTO.LOITER); outputs to out_dir."""
         s = self.offboard
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        files = {"tlog": out / "flight.tlog", "steps": out / "steps.csv"}
-        tlog = TlogWriter(files["tlog"])
-        log = StepLog(files["steps"])
+        out, files, tlog, log = open_flight_outputs(out_dir)
         link = OffboardLink(s.autopilot, self.flavour, tlog, connect_timeout=s.connect_timeout)
         completed = crashed = False
         message = ""

@@ -192,3 +192,24 @@ def plant(model, vehicle):
     from controller.simulate import ModelPlant
 
     return ModelPlant(model, motor_time_constant=vehicle.motor.time_constant)
+
+
+def assert_case2_tracked(folder: Path, settle_s: float, tolerance_m: float) -> None:
+    """A Case II flight through a real autopilot wrote steps.csv with setpoints at >= 50 Hz of the autopilot's
+    clock, no gap an offboard/GUIDED loss timeout would end the flight on (>= 1 s: shorter ones come from this
+    process being descheduled on a loaded machine), the truth within tolerance_m (m) of (2, 4, -0.3 t) from
+    settle_s (s) on, and metrics.md and tracking.png."""
+    import csv
+    import math
+
+    rows = list(csv.DictReader((folder / "steps.csv").open()))
+    times = [float(r["t"]) for r in rows]
+    assert len(rows) >= 50 * (settle_s + 0.5)
+    assert max(b - a for a, b in zip(times, times[1:], strict=False)) < 1.0
+    late = [r for r in rows if float(r["t"]) >= settle_s]
+    assert late
+    for r in late:
+        t = float(r["t"])
+        truth = (float(r["true_x"]), float(r["true_y"]), float(r["true_z"]))
+        assert math.dist(truth, (2.0, 4.0, -0.3 * t)) < tolerance_m, (t, truth)
+    assert (folder / "metrics.md").is_file() and (folder / "tracking.png").is_file()
