@@ -39,13 +39,13 @@ def drain(companion, frames, quiet: float):
 
 
 def test_lockstep_failsafe_stops_motors_keeps_stepping_and_resumes(start_sitl, raw_companion):
-    sitl = start_sitl("--lockstep-timeout", "0.3", "--sensors", "ideal", "--status-interval", "0.2")
+    sitl = start_sitl("--lockstep-timeout", "0.6", "--sensors", "ideal", "--status-interval", "0.2")
     companion = raw_companion(sitl.hil)
     frames = companion.connect()
     for _ in range(50):
         frames = companion.step([SPIN] * 4)
     assert np.allclose(rotor_speeds(frames), SPIN_SPEED, rtol=1e-3)
-    for _ in range(3):  # slow but within the wait bound: no failsafe
+    for _ in range(3):  # slow but within the wait bound (with room for a loaded machine): no failsafe
         time.sleep(0.15)
         frames = companion.step([SPIN] * 4)
         assert not texts(frames)
@@ -53,14 +53,14 @@ def test_lockstep_failsafe_stops_motors_keeps_stepping_and_resumes(start_sitl, r
     wall_silent = time.monotonic()
     again = companion.step_datagram(1.0)  # silent: the unanswered step is re-sent after 0.1 s (lost reply?)
     assert again[-1][0].time_usec == t_silent and 0.08 < time.monotonic() - wall_silent  # (late under load)
-    first = companion.step_datagram(1.0, after=t_silent)  # the first failsafe step, after the 0.3 s bound
-    assert 0.28 < time.monotonic() - wall_silent  # not before the bound (later on a loaded machine)
+    first = companion.step_datagram(1.0, after=t_silent)  # the first failsafe step, after the 0.6 s bound
+    assert 0.58 < time.monotonic() - wall_silent  # not before the bound (later on a loaded machine)
     assert first[-1][0].time_usec == t_silent + 4000
-    assert texts(first) == [(mavlink.MAV_SEVERITY_WARNING, "quadsr failsafe: no reply for 0.3 s, motors off")]
+    assert texts(first) == [(mavlink.MAV_SEVERITY_WARNING, "quadsr failsafe: no reply for 0.6 s, motors off")]
     time.sleep(0.5)  # ... and it keeps stepping at wall-clock pace with the motors off
     frames, _ = drain(companion, first, quiet=0.002)  # what is queued (steps come every 4 ms)
     stepped = (frames[-1][0].time_usec - first[-1][0].time_usec) * 1e-6
-    assert 0.2 < stepped < time.monotonic() - wall_silent - 0.28  # wall-clock pace at most (load slows it)
+    assert 0.2 < stepped < time.monotonic() - wall_silent - 0.58  # wall-clock pace at most (load slows it)
     assert np.all(rotor_speeds(frames) < 1.0)  # 25 motor time constants
     sitl.wait_for(r"phase=failsafe .*failsafe=ON")
     companion.reply(frames[-1][0].time_usec, [SPIN] * 4)  # an answer resumes lockstep
