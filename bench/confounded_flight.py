@@ -32,6 +32,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from identify_paper import CLOSED_LOOP  # noqa: E402
 
+from bridge.yaml_file import load_yaml_file  # noqa: E402
 from identification.dataset import load_dataset  # noqa: E402
 from identification.identify import identify  # noqa: E402
 from identification.model_file import save_model  # noqa: E402
@@ -42,7 +43,7 @@ from quadsr.pipeline import fly_excitation  # noqa: E402
 
 def confounded_profile(out: Path) -> Path:
     """The closed-loop profile with its motor excitation off, written to out/confounded.yaml."""
-    data = yaml.safe_load((REPO / "identification" / "profiles" / "closed-loop.yaml").read_text())
+    data = load_yaml_file(REPO / "identification" / "profiles" / "closed-loop.yaml", "closed-loop profile")
     data["name"] = "confounded"
     data["description"] = "the closed-loop profile without motor excitation: the stabiliser alone"
     data["excitation"]["amplitude"] = 0.0

@@ -39,6 +39,7 @@ import yaml
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from bridge.yaml_file import load_yaml_file  # noqa: E402
 from quadsr.pipeline import (  # noqa: E402
     GROUND_SITL,
     LEARNED_LABEL,
@@ -77,7 +78,7 @@ class SuiteRow:
 
 def mismatched_vehicle(source: Path, out: Path) -> Path:
     """A copy of the vehicle file with mass, inertia and thrust coefficient scaled by MISMATCH."""
-    data = yaml.safe_load(source.read_text(encoding="utf-8"))
+    data = load_yaml_file(source, f"vehicle file {source}")
     data["name"] = f"{data['name']}-mismatch"
     data["mass"] = data["mass"] * MISMATCH["mass"]
     data["inertia"] = [v * MISMATCH["inertia"] for v in data["inertia"]]

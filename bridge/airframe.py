@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bridge.errors import UserError
-from bridge.yaml_section import Section, Vec3
+from bridge.yaml_file import Section, Vec3
 
 ROTOR_DIRECTIONS = ("ccw", "cw")  # seen from above
 TURBULENCE_PRESETS = ("none", "light", "moderate", "severe")
@@ -152,7 +152,7 @@ def parse_rotors(sec: Section, arm_length: float, ct: float,
                                  "thrust_coefficient, moment_coefficient (default the top-level ones)")
         out = []
         for i, item in enumerate(items):
-            r = Section(sec.where, item, f"rotors[{i}]")
+            r = sec.child(f"rotors[{i}]", item)
             out.append(RotorConfig(
                 position=r.vec3("position"),
                 direction=r.text("direction", ROTOR_DIRECTIONS),
@@ -224,13 +224,9 @@ def parse_wind(sec: Section) -> WindConfig:
     turbulence = sec.text("turbulence", TURBULENCE_PRESETS, default="none")
     altitude = sec.number("reference_altitude", positive=True, default=10.0)
     seed = sec.integer("seed", default=0)
-    items = sec.raw("gusts", [])
-    if not isinstance(items, list):
-        raise UserError(f"{sec.where}: key '{sec.key('gusts')}' must be a list of "
-                        "{start: s, duration: s, amplitude: [N, E, D] m/s}")
     gusts = []
-    for i, item in enumerate(items):
-        g = Section(sec.where, item, f"{sec.key('gusts')}[{i}]")
+    for g in sec.sections("gusts", "{start: s, duration: s, amplitude: [N, E, D] m/s}", min_items=0,
+                          default=[]):
         gusts.append(GustConfig(start=g.number("start", nonnegative=True),
                                 duration=g.number("duration", positive=True), amplitude=g.vec3("amplitude")))
         g.done()

@@ -24,8 +24,7 @@ from bridge.airframe import (
     quad_x_rotors,
 )
 from bridge.errors import UserError
-from bridge.yaml_file import describe_value, float_value, load_yaml_file
-from bridge.yaml_section import Section, vec3_value
+from bridge.yaml_file import Section, describe_value, float_value, load_yaml_file, vec3_value
 
 Vec3 = tuple[float, float, float]
 Mat3 = tuple[Vec3, Vec3, Vec3]
@@ -33,6 +32,7 @@ Mat3 = tuple[Vec3, Vec3, Vec3]
 EXCHANGE_STEP = 0.004  # s, the HIL exchange step (250 Hz); the physics step must divide it
 SENSOR_PRESETS = ("realistic", "ideal")
 GROUND_MODELS = ("plane", "none")
+VEHICLE_HINT = "see sitl/vehicles/fang-chen-buaa.yaml for every key with its unit"
 
 
 THRUST_MODELS = ("linear", "px4", "polynomial")
@@ -429,7 +429,7 @@ def _check_initial(where: str, cfg: VehicleConfig) -> None:
 def _parse(where: str, data: Any, path: Path) -> VehicleConfig:
     if data is None:
         raise UserError(f"{where}: the file is empty")
-    top = Section(where, data, "")
+    top = Section(where, data, hint=VEHICLE_HINT)
     name = top.text("name")
     mass = top.number("mass", positive=True)
     gravity = top.number("gravity", nonnegative=True)

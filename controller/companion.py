@@ -126,6 +126,14 @@ def flight_label(controller: Controller) -> str:
     return f"{controller.name} ({model})" if model else f"{controller.name} (no model)"
 
 
+def open_flight_outputs(out_dir: str | Path) -> tuple[Path, dict[str, Path], TlogWriter, StepLog]:
+    """A flight's folder (made if missing), its files {tlog, steps} and their open writers (tlog, CSV)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"tlog": out / "flight.tlog", "steps": out / "steps.csv"}
+    return out, files, TlogWriter(files["tlog"]), StepLog(files["steps"])
+
+
 class Companion:
     """One flight of a controller along a trajectory against a SITL over its HIL link (see module doc)."""
 
@@ -162,11 +170,7 @@ class Companion:
     def fly(self, out_dir: str | Path) -> FlightResult:
         """Connect, fly settings.duration [s], write the tlog, step CSV, metrics and figures to out_dir."""
         s = self.settings
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        files = {"tlog": out / "flight.tlog", "steps": out / "steps.csv"}
-        tlog = TlogWriter(files["tlog"])
-        log = StepLog(files["steps"])
+        out, files, tlog, log = open_flight_outputs(out_dir)
         client = LockstepClient(hil=s.hil, tlog=tlog, timeout=s.link_timeout)
         n_steps = int(round(s.duration / EXCHANGE_STEP))
         completed = False

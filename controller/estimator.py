@@ -23,12 +23,11 @@ vehicle starts at rest), the first GPS fix sets the position.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from bridge.errors import UserError
 from bridge.geodesy import LocalFrame
 from bridge.messages import GpsSample, ImuSample
 from bridge.rotations import (
@@ -38,6 +37,7 @@ from bridge.rotations import (
     rotation_from_quaternion,
 )
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
+from bridge.yaml_file import Section, read_dataclass
 
 
 @dataclass(frozen=True)
@@ -58,23 +58,8 @@ class EstimatorSettings:
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any] | None, where: str = "estimator") -> EstimatorSettings:
-        """Settings from a mapping (unknown keys and non-positive numbers are a UserError)."""
-        if not data:
-            return cls()
-        known = {f.name: f for f in fields(cls)}
-        values: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in known:
-                raise UserError(f"{where}: unknown key {key!r}", hint=f"known keys: {', '.join(known)}")
-            if key == "acceleration_aiding":
-                if not isinstance(value, bool):
-                    raise UserError(f"{where}: {key} must be true or false, got {value!r}")
-                values[key] = value
-            elif isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-                raise UserError(f"{where}: {key} must be a positive number, got {value!r}")
-            else:
-                values[key] = float(value)
-        return cls(**values)
+        """Settings from a mapping of positive numbers (unknown keys are a UserError)."""
+        return read_dataclass(Section(where, data or {}), cls, positive=True)
 
 
 @dataclass(frozen=True)

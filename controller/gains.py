@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from bridge.errors import UserError
-from bridge.yaml_file import float_value, load_yaml_file
+from bridge.yaml_file import Section, load_yaml_file
 
 PAPER_C = (11.52, 28.00, 16.63, 6.54, 8.40, 27.50, 15.54, 5.49)
 DERIVATIVE_MODES = ("analytic", "filter")
@@ -166,28 +166,19 @@ def load_gains(path: str | os.PathLike[str] | None) -> BacksteppingGains:
 
 def gains_from_dict(data: Any, where: str = "gains") -> BacksteppingGains:
     """Gains from a flat mapping (c1..c8, k_px, ..., limits); UserError naming `where` and the key."""
-    if not isinstance(data, dict):
-        raise UserError(f"{where}: expected a mapping of gain names to values, got {type(data).__name__}")
-    known = {f.name for f in dataclasses.fields(BacksteppingGains)} - {"c"}
-    c = list(PAPER_C)
+    sec = Section(where, {} if data is None else data)
+    c = [sec.number(f"c{i}", default) for i, default in enumerate(PAPER_C, 1)]
     changes: dict[str, Any] = {}
-    for key, value in data.items():
-        key_s = str(key)
-        if key_s in {f"c{i}" for i in range(1, 9)}:
-            c[int(key_s[1]) - 1] = float_value(where, key_s, value)
-        elif key_s in _FLOAT_FIELDS:
-            changes[key_s] = float_value(where, key_s, value)
-        elif key_s == "newton_iterations":
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise UserError(f"{where}: key 'newton_iterations' must be an integer, got {value!r}")
-            changes[key_s] = value
-        elif key_s == "derivative_mode":
-            changes[key_s] = str(value)
+    for name in (f.name for f in dataclasses.fields(BacksteppingGains) if f.name != "c"):
+        if not sec.has(name):
+            continue
+        if name in _FLOAT_FIELDS:
+            changes[name] = sec.number(name)
+        elif name == "newton_iterations":
+            changes[name] = sec.integer(name)
         else:
-            raise UserError(
-                f"{where}: unknown key '{key_s}'",
-                hint=f"known keys: c1..c8, {', '.join(sorted(known))}",
-            )
+            changes[name] = sec.text(name)
+    sec.done()
     gains = BacksteppingGains(c=tuple(c), **changes)
     validate_gains(gains, where)
     return gains

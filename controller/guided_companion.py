@@ -58,19 +58,13 @@ class GuidedCompanion(OffboardCompanion):
         """Connect, estimate, GUID_OPTIONS, GUIDED, arm, take off: '' when flying, else why not."""
         s = self.offboard
         name = f"ArduPilot at {s.autopilot}"
-        try:
-            link.connect(s.connect_timeout)
-        except TimeoutError as exc:
-            return f"{exc}: is ArduPilot running (quadsr ardupilot)? its MAVLink port is tcp:HOST:5760+10*N"
-        for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
-            link.request_rate(msg_id, s.rate_hz)
+        why = self._await_estimate(
+            link, "is ArduPilot running (quadsr ardupilot)? its MAVLink port is tcp:HOST:5760+10*N",
+            lambda: (f"{name} sent no local position within {s.connect_timeout:g} s: its EKF has no "
+                     f"origin yet (GUIDED needs a position estimate; wait for GPS){_said(link)}"))
+        if why:
+            return why
         st = link.state
-        deadline = time.monotonic() + s.connect_timeout
-        while st.position is None or st.quaternion is None:
-            if time.monotonic() > deadline:
-                return (f"{name} sent no local position within {s.connect_timeout:g} s: its EKF has no "
-                        f"origin yet (GUIDED needs a position estimate; wait for GPS){_said(link)}")
-            link.poll(0.1)
         options = link.get_param("GUID_OPTIONS")
         if options is None:
             return f"{name} did not answer a read of GUID_OPTIONS (is it ArduCopter?)"

@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,9 +29,17 @@ from bridge.messages import mavlink
 from bridge.offboard import PX4, AutopilotFlavour, OffboardLink
 from bridge.px4_thrust import fit_thrust_model, normalised_thrust
 from bridge.rotations import euler_from_quaternion, quaternion_from_euler
-from bridge.tlog import TlogWriter, read_tlog
+from bridge.tlog import read_tlog
 from bridge.vehicle import VehicleConfig
-from controller.companion import CRASH_TILT, CSV_COLUMNS, Companion, FlightResult, FlightSettings, StepLog
+from controller.companion import (
+    CRASH_TILT,
+    CSV_COLUMNS,
+    Companion,
+    FlightResult,
+    FlightSettings,
+    StepLog,
+    open_flight_outputs,
+)
 from controller.plugin import Controller, Trajectory, VehicleState
 
 OFFBOARD_LOSS_MS = 1000  # PX4's COM_OF_LOSS_T default (1 s): setpoints older than this trip its failsafe
@@ -77,11 +86,7 @@ class OffboardCompanion(Companion):
     def fly(self, out_dir: str | Path) -> FlightResult:
         """Connect, stream, switch to OFFBOARD, arm, fly, hand back (AUTO.LOITER); outputs to out_dir."""
         s = self.offboard
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        files = {"tlog": out / "flight.tlog", "steps": out / "steps.csv"}
-        tlog = TlogWriter(files["tlog"])
-        log = StepLog(files["steps"])
+        out, files, tlog, log = open_flight_outputs(out_dir)
         link = OffboardLink(s.autopilot, self.flavour, tlog, connect_timeout=s.connect_timeout)
         completed = crashed = False
         message = ""
@@ -104,21 +109,32 @@ class OffboardCompanion(Companion):
                             link.link.stats.as_dict(), list(link.state.status_texts))
 
     # -------------------------------------------------------------------------------------------------
-    def _start(self, link: OffboardLink) -> str:
-        """Connect, request the estimate, pre-stream, OFFBOARD, arm: '' when flying, else why not."""
+    def _await_estimate(self, link: OffboardLink, not_running: str, no_estimate: Callable[[], str]) -> str:
+        """Connect, ask for the attitude and local position at rate_hz and wait for both: '' or why not
+        (`not_running` follows the connect timeout's message; `no_estimate()` says why none came)."""
         s = self.offboard
         try:
             link.connect(s.connect_timeout)
         except TimeoutError as exc:
-            return f"{exc}: is PX4 running (quadsr px4)? its offboard port is 14580+N"
+            return f"{exc}: {not_running}"
         for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
             link.request_rate(msg_id, s.rate_hz)
-        st = link.state
         deadline = time.monotonic() + s.connect_timeout
-        while st.position is None or st.quaternion is None:
+        while link.state.position is None or link.state.quaternion is None:
             if time.monotonic() > deadline:
-                return f"PX4 at {s.autopilot} sent no position and attitude within {s.connect_timeout:g} s"
+                return no_estimate()
             link.poll(0.1)
+        return ""
+
+    def _start(self, link: OffboardLink) -> str:
+        """Connect, request the estimate, pre-stream, OFFBOARD, arm: '' when flying, else why not."""
+        s = self.offboard
+        why = self._await_estimate(
+            link, "is PX4 running (quadsr px4)? its offboard port is 14580+N",
+            lambda: f"PX4 at {s.autopilot} sent no position and attitude within {s.connect_timeout:g} s")
+        if why:
+            return why
+        st = link.state
         yaw = float(euler_from_quaternion(st.quaternion)[2])
         level = quaternion_from_euler(0.0, 0.0, yaw)
         start_ms = st.time_boot_ms

@@ -34,7 +34,7 @@ import sympy
 from scipy.interpolate import make_interp_spline
 
 from bridge.errors import UserError
-from bridge.yaml_file import load_yaml_file
+from bridge.yaml_file import Section, load_yaml_file
 from controller.plugin import Reference, reference_from_values
 from controller.reference_shaping import min_jerk_duration
 from controller.trajectory_segments import HoldSegment, MoveSegment, PiecewiseTrajectory, RampSegment
@@ -48,8 +48,6 @@ _FUNCTIONS = {
 }
 _CONSTANTS = {"pi": sympy.pi, "e": sympy.E}
 _AXES = ("x", "y", "z", "yaw")
-_TOP_KEYS = {"name", "description", "duration", "expressions", "waypoints", "segments", "max_speed",
-             "max_acceleration", "interpolation"}
 _KINDS = ("expressions", "waypoints", "segments")
 INTERPOLATIONS = ("quintic", "min-jerk", "min-snap")
 SEGMENT_KINDS = ("hold", "step", "ramp", "move", "expressions")
@@ -210,121 +208,99 @@ def load_trajectory(name_or_path: str | os.PathLike[str]) -> UserTrajectory:
 def trajectory_from_dict(data: Any, where: str) -> UserTrajectory:
     """Build and check a trajectory from its YAML mapping; `where` names the file in errors."""
     if not isinstance(data, dict):
-        raise UserError(f"{where}: expected a mapping with 'expressions' or 'waypoints'")
-    unknown = sorted(str(k) for k in data if k not in _TOP_KEYS)
-    if unknown:
-        raise UserError(f"{where}: unknown key '{unknown[0]}'",
-                        hint=f"known keys: {', '.join(sorted(_TOP_KEYS))}")
-    given = [k for k in _KINDS if k in data]
+        raise UserError(f"{where}: expected a mapping with 'expressions', 'waypoints' or 'segments'")
+    sec = Section(where, data)
+    given = [k for k in _KINDS if sec.has(k)]
     if len(given) != 1:
         raise UserError(f"{where}: give exactly one of 'expressions', 'waypoints' or 'segments'")
     kind = given[0]
-    name = str(data.get("name", Path(where).stem))
-    description = str(data.get("description", ""))
-    duration = data.get("duration")
-    if duration is not None:
-        duration = _positive(where, "duration", duration)
-    limits = dict(DEFAULT_LIMITS)
-    limits.update({k: _positive(where, k, data[k]) for k in ("max_speed", "max_acceleration") if k in data})
+    name = str(sec.raw("name", Path(where).stem))
+    description = str(sec.raw("description", ""))
+    duration = sec.number("duration", positive=True) if sec.raw("duration", None) is not None else None
+    limits = {k: sec.number(k, v, positive=True) for k, v in DEFAULT_LIMITS.items()}
+    has_interpolation = sec.has("interpolation")
+    sec.done()
     traj: Any
     if kind == "expressions":
-        traj = _expression_trajectory(data["expressions"], where, name, description,
+        traj = _expression_trajectory(sec.section("expressions"), name, description,
                                       duration if duration is not None else 20.0)
     elif kind == "segments":
-        traj = _segment_trajectory(data["segments"], where, name, description, duration)
+        traj = _segment_trajectory(sec, name, description, duration)
     else:
-        interp = data.get("interpolation", "quintic")
+        interp = sec.raw("interpolation", "quintic")
         if interp not in INTERPOLATIONS:
             raise UserError(f"{where}: key 'interpolation' must be 'quintic' (C4 quintic spline through the "
                             f"waypoints), 'min-jerk' or 'min-snap' (a rest-to-rest minimum-jerk or -snap leg "
                             f"between each two), got {interp!r}")
-        traj = _waypoint_trajectory(data["waypoints"], where, name, description, duration, interp, limits)
-    if "interpolation" in data and kind != "waypoints":
+        traj = _waypoint_trajectory(sec, name, description, duration, interp, limits)
+    if has_interpolation and kind != "waypoints":
         raise UserError(f"{where}: key 'interpolation' only applies to 'waypoints'")
     _check_samples(traj, where, limits, kind)
     return traj
 
 
-def _positive(where: str, key: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-            or value <= 0:
-        raise UserError(f"{where}: key '{key}' must be a positive number, got {value!r}")
-    return float(value)
-
-
-def _expression_trajectory(raw: Any, where: str, name: str, description: str,
-                           duration: float, prefix: str = "expressions.") -> ExpressionTrajectory:
-    if not isinstance(raw, dict):
-        raise UserError(f"{where}: key '{prefix.rstrip('.')}' must map x, y, z, yaw to formulas in t")
+def _expression_trajectory(sec: Section, name: str, description: str,
+                           duration: float) -> ExpressionTrajectory:
+    """x, y, z (NED, m) and optional yaw (rad) as formulas in t, from the mapping `sec`."""
     exprs: dict[str, sympy.Expr] = {}
-    for key, text in raw.items():
-        if key not in _AXES:
-            raise UserError(f"{where}: unknown key '{prefix}{key}'", hint="known keys: x, y, z, yaw")
-        try:
-            exprs[key] = parse_time_expression(text)
-        except _Bad as exc:
-            raise UserError(f"{where}: key '{prefix}{key}': {exc}") from None
-    missing = [k for k in ("x", "y", "z") if k not in exprs]
-    if missing:
-        raise UserError(f"{where}: key '{prefix}{missing[0]}' is missing",
-                        hint="give x, y and z (NED, m) as formulas in t; yaw (rad) defaults to 0")
+    for key in _AXES:
+        if sec.has(key):
+            try:
+                exprs[key] = parse_time_expression(sec.raw(key))
+            except _Bad as exc:
+                raise UserError(f"{sec.where}: key '{sec.key(key)}': {exc}") from None
+    sec.done()
+    for key in ("x", "y", "z"):
+        if key not in exprs:
+            raise sec.fail(key, "is missing",
+                           hint="give x, y and z (NED, m) as formulas in t; yaw (rad) defaults to 0")
     return ExpressionTrajectory(name, exprs, duration=duration, description=description)
 
 
-def _point(where: str, key: str, pos: Any) -> list[float]:
+def _point(sec: Section, name: str) -> list[float]:
+    """[x, y, z] in m (NED) at this key."""
+    pos = sec.raw(name)
     if (not isinstance(pos, list) or len(pos) != 3
             or not all(isinstance(p, (int, float)) and not isinstance(p, bool) and math.isfinite(p)
                        for p in pos)):
-        raise UserError(f"{where}: key '{key}' must be [x, y, z] in m (NED), got {pos!r}")
+        raise sec.fail(name, f"must be [x, y, z] in m (NED), got {pos!r}")
     return [float(p) for p in pos]
 
 
-def _angle(where: str, key: str, y: Any) -> float:
-    if isinstance(y, bool) or not isinstance(y, (int, float)) or not math.isfinite(y):
-        raise UserError(f"{where}: key '{key}' must be an angle in rad, got {y!r}")
-    return float(y)
-
-
-def _waypoint_trajectory(raw: Any, where: str, name: str, description: str, duration: float | None,
+def _waypoint_trajectory(top: Section, name: str, description: str, duration: float | None,
                          interpolation: str = "quintic",
                          limits: dict[str, float] | None = None) -> WaypointTrajectory | PiecewiseTrajectory:
-    if not isinstance(raw, list) or len(raw) < 2:
-        raise UserError(f"{where}: key 'waypoints' must be a list of at least 2 waypoints")
     times: list[float | None] = []
     positions, yaws = [], []
     yaw = 0.0
-    for i, wp in enumerate(raw):
-        key = f"waypoints[{i}]"
-        if not isinstance(wp, dict):
-            raise UserError(f"{where}: key '{key}' must be a mapping with t, position and optional yaw")
-        bad = sorted(str(k) for k in wp if k not in ("t", "position", "yaw"))
-        if bad:
-            raise UserError(f"{where}: unknown key '{key}.{bad[0]}'", hint="known keys: t, position, yaw")
-        t = wp.get("t")
+    for wp in top.sections("waypoints", "waypoints (each t, position and optional yaw)", min_items=2):
+        t = wp.raw("t", None)
         if t is None and interpolation != "quintic":
             times.append(None)
         else:
-            if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
-                raise UserError(f"{where}: key '{key}.t' must be a time >= 0 in s, got {t!r}",
-                                hint="with interpolation min-jerk or min-snap the times may be left out "
-                                     "(every waypoint's): they are allocated from max_speed and "
-                                     "max_acceleration")
+            if t is None:
+                raise wp.fail("t", "is missing (a time >= 0 in s)",
+                              hint="with interpolation min-jerk or min-snap the times may be left out "
+                                   "(every waypoint's): they are allocated from max_speed and "
+                                   "max_acceleration")
+            t = wp.number("t", nonnegative=True)
             last = next((v for v in reversed(times) if v is not None), None)
             if last is not None and t <= last:
-                raise UserError(f"{where}: key '{key}.t' = {t} is not after the previous waypoint's "
-                                f"t = {last}", hint="waypoint times must strictly increase")
+                raise wp.fail("t", f"= {t:g} is not after the previous waypoint's t = {last:g}",
+                              hint="waypoint times must strictly increase")
             times.append(float(t))
-        positions.append(_point(where, f"{key}.position", wp.get("position")))
-        if "yaw" in wp:
-            yaw = _angle(where, f"{key}.yaw", wp["yaw"])
+        positions.append(_point(wp, "position"))
+        if wp.has("yaw"):
+            yaw = wp.number("yaw")
         yaws.append(yaw)
+        wp.done()
     if interpolation == "quintic":
         return WaypointTrajectory(name, np.array(times, dtype=float), np.array(positions), np.array(yaws),
                                   duration=duration, description=description)
     if any(v is None for v in times) and not all(v is None for v in times):
-        raise UserError(f"{where}: key 'waypoints': give t for every waypoint or for none",
-                        hint="without times, each leg's time is allocated from max_speed and "
-                             "max_acceleration")
+        raise top.fail("waypoints", "must give t for every waypoint or for none",
+                       hint="without times, each leg's time is allocated from max_speed and "
+                            "max_acceleration")
     lim = limits or DEFAULT_LIMITS
     legs, durations = [], []
     for k in range(len(positions) - 1):
@@ -345,54 +321,39 @@ def _waypoint_trajectory(raw: Any, where: str, name: str, description: str, dura
                                kinds=["move"] * len(legs))
 
 
-def _segment_trajectory(raw: Any, where: str, name: str, description: str,
+def _segment_trajectory(top: Section, name: str, description: str,
                         duration: float | None) -> PiecewiseTrajectory:
     """Segments: hold (at position, default the previous end), step (jump to position and hold), ramp
     (constant speed to position), move (minimum-snap to position), expressions (x, y, z, yaw in t since the
     segment's start); each with a duration [s] and an optional yaw [rad]."""
-    if not isinstance(raw, list) or not raw:
-        raise UserError(f"{where}: key 'segments' must be a list of segments",
-                        hint=f"each a mapping with kind ({', '.join(SEGMENT_KINDS)}) and duration")
     segments: list[Any] = []
     durations, kinds = [], []
     end: list[float] | None = None
     yaw = 0.0
-    for i, seg in enumerate(raw):
-        key = f"segments[{i}]"
-        if not isinstance(seg, dict):
-            raise UserError(f"{where}: key '{key}' must be a mapping with kind and duration")
-        kind = seg.get("kind")
-        if kind not in SEGMENT_KINDS:
-            raise UserError(f"{where}: key '{key}.kind' must be one of {', '.join(SEGMENT_KINDS)}, "
-                            f"got {kind!r}")
-        allowed = {"kind", "duration", "yaw"} | ({"x", "y", "z"} if kind == "expressions" else {"position"})
-        bad = sorted(str(k) for k in seg if k not in allowed)
-        if bad:
-            raise UserError(f"{where}: unknown key '{key}.{bad[0]}'",
-                            hint=f"a {kind} segment knows: {', '.join(sorted(allowed))}")
-        if "duration" not in seg:
-            raise UserError(f"{where}: key '{key}.duration' is missing", hint="the segment's length in s")
-        dur = _positive(where, f"{key}.duration", seg["duration"])
+    for i, seg in enumerate(top.sections("segments", f"segments (each a mapping with kind "
+                                                     f"({', '.join(SEGMENT_KINDS)}) and duration)")):
+        kind = seg.text("kind", SEGMENT_KINDS)
+        if not seg.has("duration"):
+            raise seg.fail("duration", "is missing", hint="the segment's length in s")
+        dur = seg.number("duration", positive=True)
         if kind == "expressions":
-            exprs = {k: seg[k] for k in ("x", "y", "z") if k in seg}
-            if "yaw" in seg:
-                exprs["yaw"] = seg["yaw"]
-            built = _expression_trajectory(exprs, where, f"{name}[{i}]", "", dur, f"{key}.")
+            built = _expression_trajectory(seg, f"{name}[{i}]", "", dur)
             segments.append(built)
             last = built.values(dur)
             end, yaw = last[0:3], last[15]
         else:
             start_yaw = yaw
-            if "yaw" in seg:
-                yaw = _angle(where, f"{key}.yaw", seg["yaw"])
-            if "position" in seg:
-                target = _point(where, f"{key}.position", seg["position"])
+            if seg.has("yaw"):
+                yaw = seg.number("yaw")
+            if seg.has("position"):
+                target = _point(seg, "position")
             elif kind == "hold" and end is not None:
                 target = list(end)
             else:
-                raise UserError(f"{where}: key '{key}.position' is missing",
-                                hint="a hold without position stays at the previous segment's end; the "
-                                     f"first segment and every {kind} need [x, y, z] in m (NED)")
+                raise seg.fail("position", "is missing",
+                               hint="a hold without position stays at the previous segment's end; the "
+                                    f"first segment and every {kind} need [x, y, z] in m (NED)")
+            seg.done()
             if kind in ("hold", "step") or end is None:
                 segments.append(HoldSegment(tuple(target), yaw))  # type: ignore[arg-type]
             elif kind == "ramp":

@@ -7,15 +7,15 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import typing
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-import numpy as np
-import yaml
-
 from bridge.errors import UserError
+from bridge.yaml_file import Section, load_yaml_file, read_dataclass
 from identification.library import DEFAULT_GROUPS, GROUPS
+
+SETTINGS_HINT = "every key is optional; see the dataclasses in identification/engine_settings.py"
 
 
 @dataclass(frozen=True)
@@ -113,68 +113,16 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def _coerce(where: str, key: str, tp: Any, value: Any) -> Any:
-    origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        return _section(where, key, tp, value)
-    if origin is tuple:
-        if isinstance(value, str):
-            value = [v.strip() for v in value.split(",") if v.strip()]
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-            raise UserError(f"{where}: key '{key}' must be a list of strings, got {value!r}")
-        return tuple(value)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise UserError(f"{where}: key '{key}' must be true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            raise UserError(f"{where}: key '{key}' must be an integer >= 0, got {value!r}")
-        return value
-    if tp is float:
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, (int, float))
-            or not np.isfinite(value)
-            or value < 0
-        ):
-            raise UserError(f"{where}: key '{key}' must be a number >= 0, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise UserError(f"{where}: key '{key}' must be a string, got {value!r}")
-        return value
-    raise TypeError(tp)
-
-
-def _section(where: str, prefix: str, cls: type, data: Any) -> Any:
-    if not isinstance(data, dict):
-        raise UserError(f"{where}: key '{prefix or '(top level)'}' must be a mapping, got {data!r}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    values = {}
-    for key, value in data.items():
-        full = f"{prefix}.{key}" if prefix else str(key)
-        if key not in names:
-            raise UserError(
-                f"{where}: unknown key '{full}'", hint=f"keys allowed here: {', '.join(sorted(names))}"
-            )
-        values[key] = _coerce(where, full, hints[key], value)
-    return cls(**values)
-
-
 def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
     """Engine settings from a YAML file (None: the defaults); a bad key or value is a UserError."""
     if path is None:
         return EngineSettings()
     where = f"settings file {path}"
-    try:
-        data = yaml.safe_load(open(path, encoding="utf-8").read())
-    except FileNotFoundError:
-        raise UserError(f"{where}: not found") from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise UserError(f"{where}: cannot read it: {exc}") from None
-    settings = _section(where, "", EngineSettings, data or {})
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"{where}: not found", hint="give the path of an engine settings YAML file")
+    data = load_yaml_file(p, where)
+    settings = read_dataclass(Section(where, data or {}, hint=SETTINGS_HINT), EngineSettings)
     bad = [g for g in settings.sparse.groups if g not in GROUPS]
     if bad:
         raise UserError(

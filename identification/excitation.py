@@ -23,16 +23,14 @@ Kinds:
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from bridge.errors import UserError
 from bridge.vehicle import VehicleConfig
-from bridge.yaml_file import load_yaml_file
+from bridge.yaml_file import Section, load_yaml_file, range_value
 from identification.hover_stabilizer import HoverStabilizer, Reference, StabilizerGains
 
 PROFILE_KINDS = ("random-steps", "sinusoids", "closed-loop")
@@ -124,106 +122,6 @@ class ClosedLoopProfile:
 Profile = RandomStepsProfile | SinusoidsProfile | ClosedLoopProfile
 
 
-class _Reader:
-    """Reads one mapping of a profile file, naming file and dotted key in every error."""
-
-    def __init__(self, where: str, data: Any, prefix: str = ""):
-        if not isinstance(data, dict):
-            raise UserError(
-                f"{where}: {'key ' + repr(prefix) if prefix else 'the top level'} must be a mapping"
-            )
-        self.where, self.data, self.prefix, self.used = where, data, prefix, set()
-
-    def _key(self, name: str) -> str:
-        return f"{self.prefix}.{name}" if self.prefix else name
-
-    def fail(self, name: str, what: str) -> UserError:
-        return UserError(
-            f"{self.where}: key '{self._key(name)}' {what}",
-            hint=f"see the bundled profiles in {profiles_dir()} for every key with its unit",
-        )
-
-    def raw(self, name: str, default: Any = ...) -> Any:
-        self.used.add(name)
-        if name not in self.data:
-            if default is ...:
-                raise self.fail(name, "is missing")
-            return default
-        return self.data[name]
-
-    def sub(self, name: str) -> _Reader:
-        return _Reader(self.where, self.raw(name, {}), self._key(name))
-
-    def number(
-        self,
-        name: str,
-        default: Any = ...,
-        low: float | None = None,
-        high: float | None = None,
-        strict_low: bool = False,
-    ) -> float:
-        v = _number(self.raw(name, default))
-        if v is None:
-            raise self.fail(name, f"must be a number, got {self.data.get(name)!r}")
-        if low is not None and (v < low or (strict_low and v == low)):
-            raise self.fail(name, f"must be {'>' if strict_low else '>='} {low:g}, got {v:g}")
-        if high is not None and v > high:
-            raise self.fail(name, f"must be <= {high:g}, got {v:g}")
-        return v
-
-    def numbers(self, name: str, n: int, default: Any = ..., low: float | None = None) -> tuple[float, ...]:
-        raw = self.raw(name, default)
-        if not isinstance(raw, (list, tuple)) or len(raw) != n:
-            raise self.fail(name, f"must be a list of {n} numbers, got {raw!r}")
-        out = tuple(_number(v) for v in raw)
-        if any(v is None for v in out):
-            raise self.fail(name, f"must be a list of {n} numbers, got {raw!r}")
-        if low is not None and any(v < low for v in out):
-            raise self.fail(name, f"values must be >= {low:g}, got {raw!r}")
-        return out  # type: ignore[return-value]
-
-    def range(self, name: str, default: Any = ..., low: float = 0.0) -> tuple[float, float]:
-        a, b = self.numbers(name, 2, default, low=low)
-        if b < a:
-            raise self.fail(name, f"must be [low, high] with low <= high, got {[a, b]}")
-        return a, b
-
-    def text(self, name: str, choices: tuple[str, ...], default: Any = ...) -> str:
-        v = self.raw(name, default)
-        if v not in choices:
-            raise self.fail(name, f"must be one of {', '.join(choices)}, got {v!r}")
-        return v
-
-    def done(self) -> None:
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            raise self.fail(unknown[0], f"is unknown (allowed here: {', '.join(sorted(self.used))})")
-
-
-_PI_RE = re.compile(r"^\s*(-?\d*\.?\d*)\s*\*?\s*pi\s*(?:/\s*(\d+\.?\d*))?\s*$")
-
-
-def _number(v: Any) -> float | None:
-    """A finite float from a YAML value; strings like '1e-4', 'pi/4', '-2*pi/3' too."""
-    if isinstance(v, bool):
-        return None
-    if isinstance(v, (int, float)):
-        f = float(v)
-        return f if math.isfinite(f) else None
-    if isinstance(v, str):
-        m = _PI_RE.match(v)
-        if m:
-            k = m.group(1)
-            factor = -1.0 if k == "-" else (1.0 if k in ("", "+") else float(k))
-            return factor * math.pi / (float(m.group(2)) if m.group(2) else 1.0)
-        try:
-            f = float(v)
-        except ValueError:
-            return None
-        return f if math.isfinite(f) else None
-    return None
-
-
 def resolve_profile_path(name_or_path: str | Path) -> Path:
     """A profile file: an existing path, else a bundled name (identification/profiles/<name>.yaml)."""
     text = str(name_or_path)
@@ -244,7 +142,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
     path = resolve_profile_path(name_or_path)
     where = f"excitation profile {path}"
     data = load_yaml_file(path, where)
-    r = _Reader(where, data)
+    r = Section(where, data, hint=f"see the bundled profiles in {profiles_dir()} for every key with its unit")
     kind = r.text("kind", PROFILE_KINDS)
     name = str(r.raw("name", path.stem))
     description = str(r.raw("description", ""))
@@ -254,16 +152,15 @@ def load_profile(name_or_path: str | Path) -> Profile:
             raise r.fail("groups", "must be a non-empty list of [low, high] speed ranges in rad/s")
         groups = []
         for i, g in enumerate(groups_raw):
-            gr = _Reader(where, {"g": g}, f"groups[{i}]")
-            groups.append(gr.range("g"))
+            groups.append(range_value(where, f"groups[{i}]", g))
         guard = r.raw("rate_guard", None)
         profile: Profile = RandomStepsProfile(
             name=name,
             description=description,
             groups=tuple(groups),
-            group_duration=r.number("group_duration", low=0.0, strict_low=True),
+            group_duration=r.number("group_duration", positive=True),
             hold=r.range("hold"),
-            rate_guard=None if guard is None else r.number("rate_guard", low=0.0, strict_low=True),
+            rate_guard=None if guard is None else r.number("rate_guard", positive=True),
         )
         if profile.hold[0] <= 0:
             raise r.fail("hold", "must be > 0 s")
@@ -271,40 +168,41 @@ def load_profile(name_or_path: str | Path) -> Profile:
         profile = SinusoidsProfile(
             name=name,
             description=description,
-            duration=r.number("duration", low=0.0, strict_low=True),
+            duration=r.number("duration", positive=True),
             offset=r.numbers("offset", 4),
             amplitude=r.numbers("amplitude", 4),  # type: ignore[arg-type]
             frequency=r.number("frequency"),
             phase=r.numbers("phase", 4),  # type: ignore[arg-type]
         )
     else:
-        to, box, ex, ref = r.sub("takeoff"), r.sub("box"), r.sub("excitation"), r.sub("reference")
-        backoff, st = ex.sub("backoff"), r.sub("stabilizer")
+        to, box = r.optional_section("takeoff"), r.optional_section("box")
+        ref, ex, st = (r.optional_section(k) for k in ("reference", "excitation", "stabilizer"))
+        backoff = ex.optional_section("backoff")
         d = StabilizerGains()
         gains = StabilizerGains(
             position_gain=st.numbers("position_gain", 3, d.position_gain, low=0.0),  # type: ignore[arg-type]
             velocity_gain=st.numbers("velocity_gain", 3, d.velocity_gain, low=0.0),  # type: ignore[arg-type]
             attitude_gain=st.numbers("attitude_gain", 3, d.attitude_gain, low=0.0),  # type: ignore[arg-type]
             rate_gain=st.numbers("rate_gain", 3, d.rate_gain, low=0.0),  # type: ignore[arg-type]
-            max_tilt=st.number("max_tilt", d.max_tilt, low=0.0, high=60.0, strict_low=True),
+            max_tilt=st.number("max_tilt", d.max_tilt, positive=True, high=60.0),
             max_speed=st.numbers("max_speed", 3, d.max_speed, low=0.0),  # type: ignore[arg-type]
         )
         profile = ClosedLoopProfile(
             name=name,
             description=description,
-            duration=r.number("duration", low=0.0, strict_low=True),
-            takeoff_altitude=to.number("altitude", low=0.0, strict_low=True),
-            climb_rate=to.number("climb_rate", low=0.0, strict_low=True),
-            settle=to.number("settle", 1.0, low=0.0),
-            box_half_width=box.number("half_width", low=0.0, strict_low=True),
+            duration=r.number("duration", positive=True),
+            takeoff_altitude=to.number("altitude", positive=True),
+            climb_rate=to.number("climb_rate", positive=True),
+            settle=to.number("settle", 1.0, nonnegative=True),
+            box_half_width=box.number("half_width", positive=True),
             box_altitude=box.range("altitude"),
-            tilt_limit=r.number("tilt_limit", low=0.0, high=80.0, strict_low=True),
+            tilt_limit=r.number("tilt_limit", positive=True, high=80.0),
             signal=ex.text("signal", ("prbs", "chirp")),
-            amplitude=ex.number("amplitude", low=0.0),
+            amplitude=ex.number("amplitude", nonnegative=True),
             prbs_hold=ex.range("hold", (0.02, 0.15)),
             chirp=ex.range("chirp", (0.5, 8.0)),
-            backoff_distance=backoff.number("distance", 1.0, low=0.0, strict_low=True),
-            backoff_tilt=backoff.number("tilt", 10.0, low=0.0, strict_low=True),
+            backoff_distance=backoff.number("distance", 1.0, positive=True),
+            backoff_tilt=backoff.number("tilt", 10.0, positive=True),
             reference_amplitude=ref.numbers("amplitude", 3, (1.0, 1.0, 0.8), low=0.0),  # type: ignore[arg-type]
             reference_period=ref.numbers("period", 3, (8.0, 5.3, 6.1), low=0.1),  # type: ignore[arg-type]
             yaw_rate=ref.number("yaw_rate", 1.0),
@@ -317,7 +215,7 @@ def load_profile(name_or_path: str | Path) -> Profile:
     return profile
 
 
-def _check_closed_loop(r: _Reader, p: ClosedLoopProfile) -> None:
+def _check_closed_loop(r: Section, p: ClosedLoopProfile) -> None:
     lo, hi = p.box_altitude
     if not lo < p.takeoff_altitude < hi:
         raise r.fail("takeoff.altitude", f"must lie inside box.altitude {list(p.box_altitude)}")

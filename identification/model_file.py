@@ -22,7 +22,7 @@ import yaml
 from sympy.printing.str import StrPrinter
 
 from bridge.errors import UserError
-from bridge.yaml_file import load_yaml_file
+from bridge.yaml_file import Section, load_yaml_file
 
 FORMAT = "quadsr-model/2"  # written; /2 adds the learned body-frame expressions (section `body`)
 FORMATS_READ: tuple[str, ...] = ("quadsr-model/1", "quadsr-model/2")
@@ -482,108 +482,64 @@ def save_model(model: Model, path: str | os.PathLike[str]) -> Path:
 # reading
 
 
-class _Reader:
-    """Typed access to the parsed YAML, every failure a UserError naming the file and key."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def fail(self, key: str, message: str) -> UserError:
-        return UserError(
-            f"{self.path}: {key}: {message}",
-            hint="regenerate it with `quadsr identify` or `quadsr model-from-vehicle`, or fix that key",
-        )
-
-    def mapping(self, value: Any, key: str) -> dict[str, Any]:
-        if not isinstance(value, dict):
-            raise self.fail(key, f"expected a mapping, got {type(value).__name__}")
-        return value
-
-    def number(self, value: Any, key: str, integer: bool = False, optional: bool = False) -> Any:
-        if value is None and optional:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(key, f"expected a number, got {value!r}")
-        if integer and not float(value).is_integer():
-            raise self.fail(key, f"expected an integer, got {value!r}")
-        return int(value) if integer else float(value)
-
-    def expression(
-        self, value: Any, key: str, names: Mapping[str, sympy.Expr] | None = None
-    ) -> sympy.Expr:
-        try:
-            expr = parse_expression(value, names)
-            if names is None:
-                check_expression(expr)
-        except ExpressionError as exc:
-            raise self.fail(key, str(exc)) from None
-        return expr
+MODEL_HINT = "regenerate it with `quadsr identify` or `quadsr model-from-vehicle`, or fix that key"
 
 
-def _read_variables(r: _Reader, data: dict[str, Any]) -> None:
-    if "variables" not in data:
+def _expression(sec: Section, name: str, names: Mapping[str, sympy.Expr] | None = None) -> sympy.Expr:
+    """The checked formula at this key (`names`: the symbols it may use; None: the state and input names)."""
+    try:
+        expr = parse_expression(sec.raw(name), names)
+        if names is None:
+            check_expression(expr)
+    except ExpressionError as exc:
+        raise sec.fail(name, f"is not a usable formula: {exc}") from None
+    return expr
+
+
+def _optional_number(sec: Section, name: str) -> float | None:
+    """A number (NaN allowed: a metric that could not be computed) or None when absent or null."""
+    return None if sec.raw(name, None) is None else sec.number(name, finite=False)
+
+
+def _read_variables(top: Section) -> None:
+    if not top.has("variables"):
         return  # optional: the names are fixed by the format
-    variables = r.mapping(data["variables"], "variables")
+    variables = top.section("variables")
     for key, expected in (("states", STATE_NAMES), ("inputs", INPUT_NAMES)):
-        items = variables.get(key)
-        if not isinstance(items, list):
-            raise r.fail(f"variables.{key}", "expected a list of {name, unit, ...}")
-        names = []
-        for i, item in enumerate(items):
-            item = r.mapping(item, f"variables.{key}[{i}]")
-            names.append(item.get("name"))
+        items = variables.sections(key, "{name, unit, ...}", min_items=0)
+        names = [item.raw("name", None) for item in items]
         if tuple(names) != expected:
-            raise r.fail(
-                f"variables.{key}", f"expected the names {list(expected)} in this order, got {names}"
-            )
+            raise variables.fail(key, f"must hold the names {list(expected)} in this order, got {names}")
 
 
-def _read_target(
-    r: _Reader, name: str, raw: Any, prefix: str = "targets", names: Mapping[str, sympy.Expr] | None = None
-) -> TargetModel:
-    key = f"{prefix}.{name}"
-    entry = r.mapping(raw, key)
-    if "expression" not in entry:
-        raise r.fail(f"{key}.expression", "missing")
-    expr = r.expression(entry["expression"], f"{key}.expression", names)
+def _read_target(entry: Section, name: str, names: Mapping[str, sympy.Expr] | None = None) -> TargetModel:
+    expr = _expression(entry, "expression", names)
     pareto: list[ParetoPoint] = []
-    raw_front = entry.get("pareto", [])
-    if raw_front is None:
-        raw_front = []
-    if not isinstance(raw_front, list):
-        raise r.fail(f"{key}.pareto", "expected a list of {complexity, loss, expression}")
-    for i, point in enumerate(raw_front):
-        pkey = f"{key}.pareto[{i}]"
-        point = r.mapping(point, pkey)
-        for needed in ("complexity", "loss", "expression"):
-            if needed not in point:
-                raise r.fail(f"{pkey}.{needed}", "missing")
-        r.expression(point["expression"], f"{pkey}.expression", names)
+    points = [] if entry.raw("pareto", None) is None else entry.sections(
+        "pareto", "{complexity, loss, expression}", min_items=0)
+    for point in points:
+        _expression(point, "expression", names)
         pareto.append(
             ParetoPoint(
-                complexity=r.number(point["complexity"], f"{pkey}.complexity", integer=True),
-                loss=r.number(point["loss"], f"{pkey}.loss"),
-                expression=str(point["expression"]),
-                holdout_loss=r.number(point.get("holdout_loss"), f"{pkey}.holdout_loss", optional=True),
-                engine=point.get("engine"),
+                complexity=point.integer("complexity"),
+                loss=point.number("loss", finite=False),
+                expression=str(point.raw("expression")),
+                holdout_loss=_optional_number(point, "holdout_loss"),
+                engine=point.raw("engine", None),
             )
         )
     metrics: dict[str, dict[str, float]] = {}
-    if entry.get("metrics") is not None:
-        raw_metrics = r.mapping(entry["metrics"], f"{key}.metrics")
-        for split, values in raw_metrics.items():
-            values = r.mapping(values, f"{key}.metrics.{split}")
-            metrics[str(split)] = {
-                str(m): r.number(v, f"{key}.metrics.{split}.{m}", optional=True) for m, v in values.items()
-            }
-    wall = r.number(entry.get("wall_time_s"), f"{key}.wall_time_s", optional=True)
+    raw_metrics = entry.optional_section("metrics")
+    for split in raw_metrics.keys():
+        values = raw_metrics.section(split)
+        metrics[str(split)] = {str(m): _optional_number(values, m) for m in values.keys()}  # type: ignore
     return TargetModel(
         name=name,
         expression=expr,
         pareto=pareto,
         metrics=metrics,
-        engine=entry.get("engine"),
-        wall_time_s=wall,
+        engine=entry.raw("engine", None),
+        wall_time_s=_optional_number(entry, "wall_time_s"),
     )
 
 
@@ -593,41 +549,30 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     if not p.exists():
         raise UserError(f"model file {p} does not exist",
                         hint="write one with `quadsr identify` or `quadsr model-from-vehicle`")
-    r = _Reader(p)
-    data = load_yaml_file(p, f"{p}: (document)")  # as _Reader names a file and key
+    where = f"model file {p}"
+    data = load_yaml_file(p, where)
     if data is None:
-        raise r.fail("(document)", "the file is empty")
-    data = r.mapping(data, "(document)")
-    if "format" not in data:
-        raise r.fail("format", f"missing (expected {FORMAT!r})")
-    if data["format"] not in FORMATS_READ:
-        readable = ", ".join(FORMATS_READ)
-        raise r.fail("format", f"unsupported {data['format']!r} (this quadsr reads {readable})")
-    kind = data.get("kind", "learned")
-    if kind not in KINDS:
-        raise r.fail("kind", f"{kind!r} is not one of {list(KINDS)}")
-    _read_variables(r, data)
-    if "targets" not in data:
-        raise r.fail("targets", "missing")
-    raw_targets = r.mapping(data["targets"], "targets")
-    if not raw_targets:
-        raise r.fail("targets", "no targets")
-    unknown = [k for k in raw_targets if k not in TARGET_NAMES]
-    if unknown:
-        raise r.fail(f"targets.{unknown[0]}", f"unknown target (known: {', '.join(TARGET_NAMES)})")
-    targets = {name: _read_target(r, name, raw_targets[name]) for name in TARGET_NAMES if name in raw_targets}
-    vehicle = data.get("vehicle")
-    if vehicle is not None:
-        vehicle = r.mapping(vehicle, "vehicle")
-    flights = data.get("flights") or []
-    if not isinstance(flights, list):
-        raise r.fail("flights", "expected a list of {file, sha256, format}")
-    for i, f in enumerate(flights):
-        r.mapping(f, f"flights[{i}]")
-    engine = data.get("engine") or {}
-    engine = r.mapping(engine, "engine")
-    created = data.get("created")
-    body = _read_body(r, data["body"]) if data.get("body") is not None else None
+        raise UserError(f"{where}: the file is empty", hint=MODEL_HINT)
+    top = Section(where, data, hint=MODEL_HINT)
+    if not top.has("format"):
+        raise top.fail("format", f"is missing (expected {FORMAT!r})")
+    if top.raw("format") not in FORMATS_READ:
+        raise top.fail("format", f"is {top.raw('format')!r}, which this quadsr cannot read "
+                                 f"(it reads {', '.join(FORMATS_READ)})")
+    kind = top.text("kind", KINDS, default="learned")
+    _read_variables(top)
+    raw_targets = top.section("targets")
+    if not raw_targets.data:
+        raise top.fail("targets", "holds no targets")
+    targets = {name: _read_target(raw_targets.section(name), name)
+               for name in TARGET_NAMES if raw_targets.has(name)}
+    raw_targets.done()
+    vehicle = top.section("vehicle").data if top.raw("vehicle", None) is not None else None
+    flights = [] if not top.raw("flights", None) else [
+        f.data for f in top.sections("flights", "{file, sha256, format}", min_items=0)]
+    engine = top.optional_section("engine").data
+    created = top.raw("created", None)
+    body = _read_body(top.section("body")) if top.raw("body", None) is not None else None
     known = {"format", "kind", "created", "vehicle", "flights", "variables", "targets", "engine", "body"}
     extra = {k: v for k, v in data.items() if k not in known}
     return Model(
@@ -643,24 +588,22 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     )
 
 
-def _read_body(r: _Reader, raw: Any) -> BodyModel:
+def _read_body(body: Section) -> BodyModel:
     """The `body` section (format /2): gravity, primitive definitions, body-frame targets in their names."""
-    body = r.mapping(raw, "body")
-    gravity = r.number(body.get("gravity"), "body.gravity")
-    prims_raw = r.mapping(body.get("primitives"), "body.primitives")
+    gravity = body.number("gravity")
+    prims = body.section("primitives")
     primitives: dict[str, dict[str, Any]] = {}
-    for name, info in prims_raw.items():
-        info = r.mapping(info, f"body.primitives.{name}")
+    for name in prims.keys():
+        info = prims.section(name)
         if not str(name).isidentifier():
-            raise r.fail(f"body.primitives.{name}", "not a name")
-        r.expression(info.get("expression"), f"body.primitives.{name}.expression")
-        primitives[str(name)] = dict(info)
+            raise prims.fail(name, "is not a name")
+        _expression(info, "expression")
+        primitives[str(name)] = dict(info.data)
     model = BodyModel({}, primitives, gravity)
     names = {**SYMBOLS, **model.symbols()}
-    raw_targets = r.mapping(body.get("targets"), "body.targets")
-    for name, entry in raw_targets.items():
+    raw_targets = body.section("targets")
+    for name in raw_targets.keys():
         if name not in BODY_TARGET_INFO:
-            known = ", ".join(BODY_TARGET_INFO)
-            raise r.fail(f"body.targets.{name}", f"unknown body target (known: {known})")
-        model.targets[name] = _read_target(r, name, entry, "body.targets", names)
+            raise raw_targets.fail(name, "is not a body target", hint=f"known: {', '.join(BODY_TARGET_INFO)}")
+        model.targets[name] = _read_target(raw_targets.section(name), name, names)
     return model

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from quadsr import __version__
+
+if TYPE_CHECKING:
+    import argparse
 
 # Each module exposes register(subparsers) -> None, adding its subcommands with set_defaults(func=...).
 # A subcommand's func takes the parsed args and returns an exit code.
@@ -24,6 +26,9 @@ COMMAND_MODULES = (
 
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every available subcommand."""
+    import argparse  # here, not at the top: `quadsr --version` imports nothing it does not need
+    import importlib
+
     parser = argparse.ArgumentParser(
         prog="quadsr",
         description="Learn a quadrotor model with symbolic regression and fly it over MAVLink.",
@@ -43,13 +48,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: parse, dispatch, and turn user mistakes into clear messages."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv == ["--version"]:  # answered before anything else is imported (argparse, numpy, sympy, ...)
+        print(f"quadsr {__version__}")
+        return 0
     from bridge.errors import UserError
     from bridge.shutdown import StopSignals
 
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if argv == ["--version"]:  # answered before any subcommand's module (numpy, sympy, ...) is imported
-        print(f"quadsr {__version__}")
-        return 0
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -40,9 +40,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"PX4 SITL build folder with bin/px4 and etc/ (default {DEFAULT_PX4})")
     p.add_argument("--vehicle", default="fang-chen-buaa", metavar="NAME|FILE",
                    help="vehicle YAML file or bundled name (default fang-chen-buaa)")
-    p.add_argument("--instance", type=int, default=0, metavar="N",
+    p.add_argument("--instance", default="0", metavar="N|FIRST-LAST",
                    help="PX4 instance: simulator tcp 4560+N, GCS udp 18570+N, offboard udp 14580+N, "
-                        "system id N+1 (default 0)")
+                        "system id N+1 (default 0); FIRST-LAST: the first free one in that range (held, so "
+                        "runs started at once take different ones)")
     p.add_argument("--work", type=Path, default=None, metavar="DIR",
                    help="work folder: PX4's ROMFS copy, parameters, ULogs (rootfs/log), truth.tlog, logs "
                         "(default quadsr-px4-N in the current folder)")
@@ -83,24 +84,29 @@ def _airframe(args: argparse.Namespace) -> int:
 def _px4(args: argparse.Namespace) -> int:
     from bridge.vehicle import load_vehicle
     from quadsr.px4_airframe import airframe_for
-    from quadsr.px4_launch import Px4Ports, Px4Process, check_build, ports_free, prepare_work
+    from quadsr.px4_launch import Px4Ports, Px4Process, check_build, claim_free_instance, prepare_work
     from quadsr.sitl_process import SitlProcess
 
-    if not 0 <= args.instance <= 200:
-        raise UserError(f"--instance must be 0..200, got {args.instance}")
+    first, last = _instance_range(args.instance)
     timeouts = (("--connect-timeout", args.connect_timeout), ("--lockstep-timeout", args.lockstep_timeout))
     for flag, value in timeouts:
         if not value > 0:
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
     build = check_build(Path(args.px4))
     vehicle = load_vehicle(args.vehicle)
-    ports = Px4Ports(args.instance)
-    if not ports_free(ports):
+    try:
+        args.instance, held = claim_free_instance(first, last)  # held until this process ends
+    except UserError:
+        if first != last:
+            raise
+        ports = Px4Ports(first)
         raise UserError(
-            f"ports of PX4 instance {args.instance} are in use (tcp {ports.simulator}, udp "
-            f"{', '.join(map(str, ports.udp_local))})",
-            hint="is another PX4 or simulator running? pick another --instance",
-        )
+            f"ports of PX4 instance {first} are in use (tcp {ports.simulator}, udp "
+            f"{', '.join(map(str, ports.udp_local))}) or another quadsr px4 holds it",
+            hint="is another PX4 or simulator running? pick another --instance, or a range: --instance 1-9",
+        ) from None
+    ports = Px4Ports(args.instance)
+    _say(f"using PX4 instance {args.instance}")
     work = (args.work or Path(f"quadsr-px4-{args.instance}")).resolve()
     tree = prepare_work(build, work, airframe_for(vehicle), str(vehicle.source_path or vehicle.name))
     sitl_args = ["--vehicle", str(vehicle.source_path or vehicle.name), "--companion-sysid",
@@ -178,6 +184,17 @@ def _supervise(args, ports, work: Path, model: str, sitl, px4, stop: dict) -> in
         time.sleep(0.1)
     say(f"stopping on {signal.Signals(stop['signal']).name}")
     return 0
+
+
+def _instance_range(text: str) -> tuple[int, int]:
+    """--instance N or FIRST-LAST as (first, last), each in 0..200; UserError otherwise."""
+    parts = str(text).split("-")
+    if len(parts) not in (1, 2) or not all(p.strip().isdigit() for p in parts):
+        raise UserError(f"--instance must be a number N or a range FIRST-LAST, got {text!r}")
+    first, last = int(parts[0]), int(parts[-1])
+    if not 0 <= first <= last <= 200:
+        raise UserError(f"--instance must be within 0..200 (FIRST <= LAST), got {text}")
+    return first, last
 
 
 def _say(text: str, err: bool = False) -> None:

@@ -9,11 +9,14 @@ parameters, dataman, ULogs under `rootfs/log/`).
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import socket
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 from bridge.errors import UserError
 from quadsr.child_process import OutputProcess
@@ -75,12 +78,38 @@ def ports_free(ports: Px4Ports) -> bool:
             s.close()
 
 
-def free_instance(first: int, last: int) -> int:
-    """The first PX4 instance number in [first, last] whose ports are all free (UserError if none)."""
+def claim_instance(n: int) -> IO[bytes] | None:
+    """Hold PX4 instance n for this process (an exclusive lock on a file in the temp folder, released when the
+    returned file is closed or the process ends); None when another process holds it."""
+    path = Path(tempfile.gettempdir()) / f"quadsr-px4-instance-{n}.lock"
+    lock = open(path, "ab")  # noqa: SIM115 (held open: the lock lives as long as the file)
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        lock.close()
+        return None
+    return lock
+
+
+def claim_free_instance(first: int, last: int) -> tuple[int, IO[bytes]]:
+    """The first PX4 instance in [first, last] nobody holds and whose ports are free, and its held lock: two
+    `quadsr px4` started at once never take the same one (UserError if none is free)."""
     for n in range(first, last + 1):
+        lock = claim_instance(n)
+        if lock is None:
+            continue
         if ports_free(Px4Ports(n)):
-            return n
+            return n, lock
+        lock.close()
     raise UserError(f"no PX4 instance in {first}..{last} has free ports", hint="stop other PX4 or simulators")
+
+
+def free_instance(first: int, last: int) -> int:
+    """The first PX4 instance number in [first, last] nobody holds and whose ports are free (not kept: to hold
+    one, use claim_free_instance or `quadsr px4 --instance FIRST-LAST`)."""
+    n, lock = claim_free_instance(first, last)
+    lock.close()
+    return n
 
 
 def check_build(path: Path) -> Path:

@@ -16,14 +16,17 @@ from quadsr.child_process import OutputProcess
 REPO = Path(__file__).resolve().parent.parent
 PX4_DIR = REPO.parent / "shared" / "px4"
 STARTED = re.compile(r"started PX4 \(pid (\d+)\) and the SITL \(pid (\d+)\)")
+INSTANCE = re.compile(r"using PX4 instance (\d+)")
 mav = mavutil.mavlink
 
 
 class QuadsrPx4(OutputProcess):
-    """A running `quadsr px4` (PX4 + quadsr's SITL), its output lines, its children's pids."""
+    """A running `quadsr px4` (PX4 + quadsr's SITL), its output lines, its instance and its children's pids.
+    Give `--instance FIRST-LAST`: it takes a free instance and holds it, so parallel runs never share one."""
 
     def __init__(self, *flags: str):
         super().__init__([sys.executable, "-m", "quadsr.cli", "px4", *flags], cwd=REPO)
+        self.instance = int(self.wait_for(INSTANCE, 60.0).group(1))
         m = self.wait_for(STARTED, 60.0)
         self.px4_pid, self.sitl_pid = int(m.group(1)), int(m.group(2))
 

@@ -7,8 +7,6 @@ and --duration); ArduPilot runs at --speedup 4 so that the companion keeps up on
 
 from __future__ import annotations
 
-import csv
-import math
 import subprocess
 import sys
 
@@ -19,7 +17,7 @@ from identification.ardupilot_flight import ArduCopterLink
 from identification.true_model import write_true_model
 from quadsr.ardupilot_process import TCP_BASE, ArduPilotProcess
 from sitl.ardupilot_params import ardupilot_parameters
-from tests.conftest import REPO
+from tests.conftest import REPO, assert_case2_tracked
 
 ARDUPILOT = REPO.parent / "shared" / "ardupilot"
 
@@ -69,17 +67,7 @@ def test_refused_arming_then_case2_through_guided(arducopter, tmp_path):
     output = run.stdout + run.stderr
     assert run.returncode == 0, output
     assert "through ArduPilot GUIDED" in output and "(truth)" in output
-    rows = list(csv.DictReader((tmp_path / "case2" / "steps.csv").open()))
-    times = [float(r["t"]) for r in rows]
-    assert len(rows) >= 50 * 10.5  # setpoints at >= 50 Hz of ArduPilot's clock
-    assert max(b - a for a, b in zip(times, times[1:], strict=False)) < 0.1
-    late = [r for r in rows if float(r["t"]) >= 10.0]
-    assert late
-    for r in late:
-        t = float(r["t"])
-        truth = (float(r["true_x"]), float(r["true_y"]), float(r["true_z"]))
-        assert math.dist(truth, (2.0, 4.0, -0.3 * t)) < 0.15, (t, truth)
-    assert (tmp_path / "case2" / "metrics.md").is_file() and (tmp_path / "case2" / "tracking.png").is_file()
+    assert_case2_tracked(tmp_path / "case2", settle_s=10.0, tolerance_m=0.15)
 
 
 @pytest.mark.parametrize(

@@ -11,7 +11,6 @@ import sympy
 
 from bridge.errors import UserError
 from bridge.rotations import rotation_matrix
-from bridge.vehicle import load_vehicle
 from controller.backstepping import BacksteppingController, ModelErrorObserver
 from controller.gains import BacksteppingGains, gains_from_dict, load_gains
 from controller.plugin import Reference, VehicleState
@@ -20,29 +19,13 @@ from controller.trajectories import load_trajectory
 from identification.kinematics import euler_rates
 from identification.model_file import SYMBOLS as S
 from identification.paper_model import paper_model as paper_learned_model
-from identification.true_model import true_model
 
 STATE = ("x", "y", "z", "vx", "vy", "vz", "phi", "theta", "psi", "wx", "wy", "wz")
 
 
 @pytest.fixture(scope="module")
-def vehicle():
-    return load_vehicle("fang-chen-buaa")
-
-
-@pytest.fixture(scope="module")
-def model(vehicle):
-    return true_model(vehicle)
-
-
-@pytest.fixture(scope="module")
 def ctl(model, vehicle):
     return BacksteppingController(model, vehicle)
-
-
-@pytest.fixture(scope="module")
-def plant(model, vehicle):
-    return ModelPlant(model, motor_time_constant=vehicle.motor.time_constant)
 
 
 def paper_model() -> dict[str, sympy.Expr]:

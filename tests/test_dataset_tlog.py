@@ -9,7 +9,7 @@ import struct
 
 import numpy as np
 import pytest
-from conftest import SitlProcess
+from conftest import SitlProcess, altitude_sitl_args
 from physics_targets import physics_targets, r2
 
 from bridge.errors import UserError
@@ -22,23 +22,7 @@ from identification.excite import fly
 def flights(tmp_path_factory):
     """A paper-train (3 s) and a paper-validate (2 s) flight of a noise-free SITL at 200 m, no ground."""
     d = tmp_path_factory.mktemp("tlog")
-    sitl = SitlProcess(
-        [
-            "--hil",
-            "udp:127.0.0.1:0",
-            "--no-gcs",
-            "--ground",
-            "none",
-            "--initial-position",
-            "0,0,-200",
-            "--sensors",
-            "ideal",
-            "--seed",
-            "3",
-            "--status-interval",
-            "0",
-        ]
-    )
+    sitl = SitlProcess(altitude_sitl_args(3))
     try:
         train = fly("paper-train", d / "train.tlog", hil=sitl.hil, duration=3.0, seed=5, progress=False)
         val = fly("paper-validate", d / "val.tlog", hil=sitl.hil, duration=2.0, progress=False)

@@ -97,5 +97,5 @@ def test_settings_mapping_is_validated():
     assert EstimatorSettings.from_mapping({"attitude_kp": 2}).attitude_kp == 2.0
     with pytest.raises(UserError, match="unknown key 'kp'"):
         EstimatorSettings.from_mapping({"kp": 1.0})
-    with pytest.raises(UserError, match="positive"):
+    with pytest.raises(UserError, match="baro_noise. must be > 0"):
         EstimatorSettings.from_mapping({"baro_noise": -1})

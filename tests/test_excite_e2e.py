@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import REPO, SitlProcess
+from conftest import REPO, SitlProcess, altitude_sitl_args
 from physics_targets import physics_targets, r2
 
 from identification.dataset import load_dataset
@@ -30,23 +30,7 @@ def excite(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def sitl_at_altitude():
-    sitl = SitlProcess(
-        [
-            "--hil",
-            "udp:127.0.0.1:0",
-            "--no-gcs",
-            "--ground",
-            "none",
-            "--initial-position",
-            "0,0,-200",
-            "--sensors",
-            "ideal",
-            "--seed",
-            "7",
-            "--status-interval",
-            "0",
-        ]
-    )
+    sitl = SitlProcess(altitude_sitl_args(7))
     yield sitl
     sitl.stop()
 

@@ -129,10 +129,11 @@ def test_connect_without_a_sitl_raises_link_lost():
 
 
 def test_step_raises_link_lost_when_the_sitl_stops_answering():
-    with FakeSitl() as sitl, LockstepClient(sitl.address, timeout=0.2) as client:
+    with FakeSitl() as sitl, LockstepClient(sitl.address, timeout=5.0) as client:
         client.connect(5.0)
-        client.step([0.5] * 4)
+        client.step([0.5] * 4)  # answered (a patient bound: the fake SITL's thread may be slow to run)
         sitl.answer = False
+        client.timeout = 0.2
         start = time.monotonic()
         with pytest.raises(LinkLost, match="no step"):
             client.step([0.5] * 4)

@@ -91,10 +91,10 @@ def test_accelerations_scalar_and_vectorised_agree_and_are_fast(tmp_path):
         single = model.accelerations(xi[i], u[i])
         assert single.shape == (6,)
         np.testing.assert_allclose(single, batch[i], rtol=1e-12, atol=1e-12)
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time of this process: other processes' load does not count
     for i in range(500):
         model.accelerations(xi[i], u[i])
-    per_call = (time.perf_counter() - start) / 500
+    per_call = (time.process_time() - start) / 500
     assert per_call < 200e-6, f"scalar call took {per_call * 1e6:.0f} us"
     assert [str(s) for s in model.state_symbols] == list(model.state_names)
     assert set(model.symbols) == set(model.state_names) | set(model.input_names)
@@ -141,9 +141,9 @@ def _good_dict(tmp_path):
 
 
 MALFORMATIONS = [
-    ("empty", lambda d: "", "(document)"),
-    ("not yaml", lambda d: "format: [unclosed\n", "(document)"),
-    ("a list", lambda d: [1, 2], "(document)"),
+    ("empty", lambda d: "", "the file is empty"),
+    ("not yaml", lambda d: "format: [unclosed\n", "YAML syntax error"),
+    ("a list", lambda d: [1, 2], "the top level must be a mapping"),
     ("no format", lambda d: {k: v for k, v in d.items() if k != "format"}, "format"),
     ("other format", lambda d: {**d, "format": "quadsr-model/9"}, "format"),
     ("bad kind", lambda d: {**d, "kind": "guessed"}, "kind"),
@@ -223,7 +223,8 @@ def test_each_malformation_is_a_user_error_naming_file_and_key(tmp_path, label, 
     with pytest.raises(UserError) as info:
         load_model(path)
     text = str(info.value)
-    assert str(path) in text and f": {key}:" in text, text
+    expected = key if " " in key else f"key '{key}'"  # a dotted key, or the words of a whole-file mistake
+    assert str(path) in text and expected in text, text
 
 
 def test_missing_and_unreadable_files_are_user_errors(tmp_path):

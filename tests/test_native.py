@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import sympy
 
-from bridge.vehicle import load_vehicle
 from controller import derivation, native
 from controller.backstepping import BacksteppingController
 from controller.plugin import VehicleState
@@ -27,11 +26,6 @@ EXPRS = [
     sympy.Abs(X) * X + sympy.sign(Y) * sympy.sqrt(sympy.Abs(Y)) + X**4,
     sympy.exp(-X**2) * sympy.log(1 + Y**2) + sympy.Piecewise((X, X > 0), (0, True)),
 ]
-
-
-@pytest.fixture(scope="module")
-def vehicle():
-    return load_vehicle("fang-chen-buaa")
 
 
 @pytest.fixture()

@@ -16,7 +16,7 @@ import pytest
 from px4_run import PX4_DIR, Gcs, QuadsrPx4, gone, mav
 
 from bridge.tlog import read_tlog
-from quadsr.px4_launch import Px4Ports, free_instance
+from quadsr.px4_launch import Px4Ports
 
 HOVER_ALT = 2.5  # m, PX4's default takeoff altitude (MIS_TAKEOFF_ALT)
 
@@ -24,11 +24,10 @@ HOVER_ALT = 2.5  # m, PX4's default takeoff altitude (MIS_TAKEOFF_ALT)
 @pytest.fixture(scope="module")
 def px4_flight(tmp_path_factory):
     """`quadsr px4` on a free instance with ideal sensors, ready for takeoff; a GCS connected to it."""
-    instance = free_instance(60, 120)
     work = tmp_path_factory.mktemp("px4")
     started = time.monotonic()
-    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", str(instance), "--work", str(work),
-                    "--sensors", "ideal")
+    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", "60-120", "--work", str(work), "--sensors", "ideal")
+    instance = run.instance
     try:
         run.wait_for("is flying quadsr's SITL", 60.0)
         run.wait_for("ready for takeoff", max(1.0, 60.0 - (time.monotonic() - started)))
@@ -105,9 +104,9 @@ def test_px4_that_never_connects_gives_a_clear_message(tmp_path):
     sim = build / "etc" / "init.d-posix" / "px4-rc.simulator"
     sim.chmod(0o644)
     sim.write_text("#!/bin/sh\necho 'simulator start-up removed for this test'\n")
-    instance = free_instance(121, 180)
-    run = QuadsrPx4("--px4", str(build), "--instance", str(instance), "--work", str(tmp_path / "work"),
+    run = QuadsrPx4("--px4", str(build), "--instance", "121-180", "--work", str(tmp_path / "work"),
                     "--connect-timeout", "5")
+    instance = run.instance
     try:
         code = run.proc.wait(90.0)
     finally:

@@ -9,8 +9,6 @@ companion run answers from PX4's offboard remote port 14540+N (PX4 keeps its fir
 
 from __future__ import annotations
 
-import csv
-import math
 import os
 import re
 import signal
@@ -19,11 +17,12 @@ import sys
 
 import pytest
 import yaml
+from conftest import assert_case2_tracked
 from px4_run import PX4_DIR, REPO, Gcs, QuadsrPx4, mav
 
 from bridge.vehicle import load_vehicle
 from identification.true_model import write_true_model
-from quadsr.px4_launch import Px4Ports, free_instance
+from quadsr.px4_launch import Px4Ports
 
 OFFBOARD = 6 << 16  # PX4 main mode in HEARTBEAT.custom_mode
 
@@ -31,12 +30,12 @@ OFFBOARD = 6 << 16  # PX4 main mode in HEARTBEAT.custom_mode
 @pytest.fixture(scope="module")
 def px4_rt(tmp_path_factory):
     """`quadsr px4 --mode realtime` (ideal sensors) ready for takeoff, a GCS on it, the true model file."""
-    instance = free_instance(1, 9)
     work = tmp_path_factory.mktemp("px4rt")
     model = work / "true.yaml"
     write_true_model(load_vehicle("fang-chen-buaa"), model)
-    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", str(instance), "--work", str(work), "--sensors",
+    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", "1-9", "--work", str(work), "--sensors",
                     "ideal", "--mode", "realtime")
+    instance = run.instance
     try:
         run.wait_for("ready for takeoff", 90.0)
         gcs = Gcs(Px4Ports(instance).gcs, instance + 1)
@@ -78,19 +77,7 @@ def test_case2_through_px4_offboard(px4_rt, tmp_path):
     proc = fly(work, model, port, tmp_path / "case2")
     output, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, output
-    rows = list(csv.DictReader((tmp_path / "case2" / "steps.csv").open()))
-    times = [float(r["t"]) for r in rows]
-    assert len(rows) >= 50 * 8.5  # setpoints at >= 50 Hz of PX4's clock
-    # a gap past PX4's offboard-loss timeout (1 s) would have ended the flight; shorter ones come from this
-    # process being descheduled on a loaded machine
-    assert max(b - a for a, b in zip(times, times[1:], strict=False)) < 1.0
-    late = [r for r in rows if float(r["t"]) >= 8.0]
-    assert late
-    for r in late:
-        t = float(r["t"])
-        truth = (float(r["true_x"]), float(r["true_y"]), float(r["true_z"]))
-        assert math.dist(truth, (2.0, 4.0, -0.3 * t)) < 0.10, (t, truth)
-    assert (tmp_path / "case2" / "metrics.md").is_file() and (tmp_path / "case2" / "tracking.png").is_file()
+    assert_case2_tracked(tmp_path / "case2", settle_s=8.0, tolerance_m=0.10)
     assert "(truth)" in output
 
 

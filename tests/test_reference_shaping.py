@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from bridge.vehicle import load_vehicle
 from controller.backstepping import BacksteppingController
 from controller.outer_loop import saturate_feedback
 from controller.plugin import Reference, VehicleState
@@ -22,26 +21,10 @@ from controller.reference_shaping import (
 )
 from controller.simulate import ModelPlant, simulate
 from controller.trajectories import load_trajectory, trajectory_from_dict
-from identification.true_model import true_model
 
 CIRCLE = {"name": "aggressive-circle", "duration": 25,
           "expressions": {"x": "4*sin(1.2*t)", "y": "4*cos(1.2*t) - 4", "z": "-2"}}
 HOVER = {"name": "hover", "expressions": {"x": "0", "y": "0", "z": "-2"}}
-
-
-@pytest.fixture(scope="module")
-def vehicle():
-    return load_vehicle("fang-chen-buaa")
-
-
-@pytest.fixture(scope="module")
-def model(vehicle):
-    return true_model(vehicle)
-
-
-@pytest.fixture(scope="module")
-def plant(model, vehicle):
-    return ModelPlant(model, motor_time_constant=vehicle.motor.time_constant)
 
 
 class HoverPlant(ModelPlant):

@@ -64,12 +64,9 @@ def test_waits_on_the_ground_until_a_companion_speaks(start_sitl, raw_companion)
     assert "phase=waiting" in sitl.status_lines()[-1] and " steps=0 " in sitl.status_lines()[-1]
     companion = raw_companion(sitl.hil)
     companion.hello()
-    t0 = time.monotonic()
-    times = []
-    while time.monotonic() - t0 < 0.45:  # no reply yet: the time-0 datagram is re-sent every 0.1 s
-        frames = companion.step_datagram()
-        times.append(frames[-1][0].time_usec)
-    assert len(times) >= 4 and set(times) == {0}
+    # no reply yet: the time-0 datagram is re-sent (every 0.1 s), never a later step
+    times = [companion.step_datagram()[-1][0].time_usec for _ in range(4)]
+    assert set(times) == {0}
     assert companion.step([0.0] * 4)[-1][0].time_usec == 4000
 
 
@@ -142,7 +139,9 @@ def test_realtime_mode_steps_at_the_wall_clock_pace(start_sitl):
         while time.monotonic() - t0 < 1.0:
             client.step([0.0] * 4)
         wall, sim = time.monotonic() - t0, (client.observation.time_usec - sim0) * 1e-6
-    assert sim == pytest.approx(wall, rel=0.1)
+    # paced by the wall clock: never ahead of it by more than the catch-up a lagging SITL may burst
+    # (sitl.server.MAX_LAG_S, 0.1 s); behind it only as far as a loaded machine starves the SITL
+    assert 0.5 * wall < sim <= wall + 0.1 + 0.008
     assert "FAILSAFE" not in sitl.output
 
 
@@ -221,12 +220,18 @@ def test_ground_link_acts_like_a_px4_vehicle(start_sitl, udp_port):
     gcs = GroundStation(udp_port)
     try:
         sitl = start_sitl("--gcs", f"udp:127.0.0.1:{udp_port}", "--sensors", "ideal")
-        time.sleep(1.3)  # no companion yet: streams at wall-clock pace
+        deadline = time.monotonic() + 20.0  # no companion yet: streams at wall-clock pace, 1 Hz heartbeat
+        while len(gcs.of("HEARTBEAT")) < 2 and time.monotonic() < deadline:
+            time.sleep(0.05)
         hb = gcs.of("HEARTBEAT")[0]
         assert (hb.type, hb.autopilot) == (mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4)
         assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         assert hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1
-        assert 1 <= len(gcs.of("HEARTBEAT")) <= 3 and 40 <= len(gcs.of("ATTITUDE")) <= 80
+        # ATTITUDE at 50 Hz of the wall clock it stamps (time_boot_ms): never faster; a slot a loaded machine
+        # made late is skipped, not sent twice (measured here under load: 33 in the first 1.1 s), so the
+        # count over wall time is no test; the exact rates are checked below in simulated time
+        wait_t = np.diff([m.time_boot_ms for m in gcs.of("ATTITUDE")])
+        assert len(wait_t) >= 10 and wait_t.min() >= 19, wait_t
         for kind in ("ATTITUDE_QUATERNION", "LOCAL_POSITION_NED", "GLOBAL_POSITION_INT", "SYS_STATUS",
                      "HOME_POSITION"):
             assert gcs.of(kind), kind

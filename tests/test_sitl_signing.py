@@ -47,7 +47,8 @@ def test_signed_companion_steps_and_the_sitl_signs_everything(start_sitl, key_fi
 
 
 def test_unsigned_and_wrongly_signed_commands_are_refused_and_counted(start_sitl, key_file, raw_companion):
-    sitl = start_sitl("--signing-key", str(key_file), "--status-interval", "0.2")
+    # a patient lockstep bound: "the refused command did not step" must not depend on how fast this runs
+    sitl = start_sitl("--signing-key", str(key_file), "--status-interval", "0.2", "--lockstep-timeout", "10")
     with LockstepClient(sitl.hil, timeout=1.0) as unsigned, pytest.raises(LinkLost):
         unsigned.connect(0.5)
     with LockstepClient(sitl.hil, signing=Signing(OTHER_KEY), timeout=1.0) as wrong, pytest.raises(LinkLost):

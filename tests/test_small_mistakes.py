@@ -12,7 +12,7 @@ from bridge.errors import UserError
 from bridge.link import UdpLink, parse_endpoint
 from quadsr.cli import main
 
-HEAVY = ("numpy", "sympy", "scipy", "identification", "controller", "sitl", "pymavlink")
+HEAVY = ("numpy", "sympy", "scipy", "identification", "controller", "sitl", "pymavlink", "bridge", "argparse")
 
 
 def test_version_answers_without_importing_any_subcommand():

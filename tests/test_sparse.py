@@ -19,9 +19,9 @@ from identification.validate import compare_models
 
 def test_recovers_every_true_term_within_2_percent_in_seconds():
     data = synthetic_dataset(3000, seed=11)
-    start = time.perf_counter()
+    start = time.process_time()  # CPU time of this process (all its threads): other processes' do not count
     model = identify(data, engine="sparse", budget=30, seed=0, progress=False)
-    elapsed = time.perf_counter() - start
+    elapsed = time.process_time() - start
     assert elapsed < 30, f"six targets took {elapsed:.1f} s"
     for cmp in compare_models(model, true_model("fang-chen-buaa")):
         assert cmp.same_terms, (cmp.target, cmp.missing, cmp.extra)

@@ -118,13 +118,13 @@ _DELETE = object()
 @pytest.mark.parametrize(
     ("key", "value", "expected"),
     [
-        ("mass", _DELETE, "missing key 'mass'"),
+        ("mass", _DELETE, "key 'mass' is missing"),
         ("mass", -1.0, "key 'mass' must be > 0, got -1"),
         ("mass", 0, "key 'mass' must be > 0, got 0"),
         ("mass", "heavy", "key 'mass' must be a number"),
         ("motor.time_constant", -1, "key 'motor.time_constant' must be > 0, got -1"),
         ("motor.curve_slope", 0.0, "key 'motor.curve_slope' must be > 0"),
-        ("motor.rotor_inertia", _DELETE, "missing key 'motor.rotor_inertia'"),
+        ("motor.rotor_inertia", _DELETE, "key 'motor.rotor_inertia' is missing"),
         ("motor.spin", 3, "unknown key 'motor.spin'"),
         ("colour", "red", "unknown key 'colour'"),
         ("inertia", [0.0211, -0.0219, 0.0366], "key 'inertia' must be positive definite"),

@@ -27,14 +27,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from bridge.errors import UserError
 from bridge.rotations import quaternion_from_euler, quaternion_from_rotation
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
+from bridge.yaml_file import Section, read_dataclass
 from controller.plugin import Command, Reference, VehicleState, as_floats
 
 SQRT1_2 = math.sqrt(0.5)
@@ -84,22 +84,8 @@ class PidCascadeGains:
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any] | None, where: str = "pid gains") -> PidCascadeGains:
-        """Gains from a mapping of PX4 parameter names (e.g. the `pid:` section of a gains YAML)."""
-        if not data:
-            return cls()
-        if not isinstance(data, dict):
-            raise UserError(f"{where}: expected a mapping of PX4 parameter names to numbers")
-        names = {f.name for f in fields(cls)}
-        values: dict[str, float] = {}
-        for key, value in data.items():
-            if key not in names:
-                raise UserError(f"{where}: unknown parameter {key!r}",
-                                hint=f"known: {', '.join(sorted(names))}")
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or value < 0:
-                raise UserError(f"{where}: parameter {key!r} must be a number >= 0, got {value!r}")
-            values[key] = float(value)
-        return cls(**values)
+        """Gains from a mapping of PX4 parameter names to numbers >= 0 (a gains YAML's `pid:` section)."""
+        return read_dataclass(Section(where, data or {}, noun="parameter"), cls)
 
 
 # ---- quaternion helpers on plain floats (w, x, y, z), body -> earth ------------------------------------

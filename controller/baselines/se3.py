@@ -23,15 +23,15 @@ controller.allocation (squared speeds within [0, w_max^2]; yaw, then collective,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from bridge.errors import UserError
 from bridge.rotations import rotation_from_euler as rotation_from_euler_rows
 from bridge.rotations import rotation_from_quaternion as rotation_from_quaternion_rows
 from bridge.vehicle import VehicleConfig
+from bridge.yaml_file import Section, read_dataclass
 from controller.allocation import allocate
 from controller.plugin import Command, Reference, VehicleState, as_floats
 
@@ -57,27 +57,8 @@ class Se3Gains:
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any] | None, where: str = "se3 gains") -> Se3Gains:
-        """Gains from a mapping (e.g. the `se3:` section of a gains YAML); unknown keys are a UserError."""
-        if not data:
-            return cls()
-        if not isinstance(data, dict):
-            raise UserError(f"{where}: expected a mapping of gain names to numbers, "
-                            f"got {type(data).__name__}")
-        names = {f.name: f for f in fields(cls)}
-        values: dict[str, Any] = {}
-        for key, value in data.items():
-            if key not in names:
-                raise UserError(f"{where}: unknown gain {key!r}", hint=f"known gains: {', '.join(names)}")
-            if names[key].type in ("bool", bool):
-                if not isinstance(value, bool):
-                    raise UserError(f"{where}: gain {key!r} must be true or false, got {value!r}")
-                values[key] = value
-                continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or value <= 0:
-                raise UserError(f"{where}: gain {key!r} must be a positive number, got {value!r}")
-            values[key] = float(value)
-        return cls(**values)
+        """Gains from a mapping of positive numbers (e.g. the `se3:` section of a gains YAML)."""
+        return read_dataclass(Section(where, data or {}, noun="gain"), cls, positive=True)
 
 
 def hat(v: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ from typing import Any
 
 from bridge.errors import UserError
 from bridge.vehicle import load_vehicle, resolve_vehicle_path
-from bridge.yaml_file import describe_value, float_value, load_yaml_file
+from bridge.yaml_file import Section, describe_value, float_value, load_yaml_file
 
 PIPELINES = ("fly", "learn-fly")
 CONTROLLERS = ("backstepping-learned", "backstepping-true", "pid", "se3")
@@ -220,15 +220,6 @@ def _distribution(where: str, key: str, name: str, value: Any, vehicle_data: Any
     return Distribution(kind, (a, b))
 
 
-def _mapping(where: str, data: dict, key: str) -> dict:
-    value = data.get(key)
-    if value is None:
-        return {}
-    if not isinstance(value, dict):
-        raise UserError(f"{where}: key '{key}' must be a mapping, got {describe_value(value)}")
-    return value
-
-
 def _learned_model(where: str, base: Path, value: Any) -> LearnedModelSpec:
     if value is None:
         return LearnedModelSpec()
@@ -241,17 +232,11 @@ def _learned_model(where: str, base: Path, value: Any) -> LearnedModelSpec:
         return LearnedModelSpec(path=path)
     if not isinstance(value, dict):
         raise UserError(f"{where}: key 'models.learned' must be a model file path or a mapping")
-    unknown = set(value) - {"profile", "duration", "seed"}
-    if unknown:
-        raise UserError(f"{where}: unknown key 'models.learned.{sorted(unknown)[0]}'",
-                        hint="known: profile, duration, seed")
-    seed = value.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise UserError(f"{where}: key 'models.learned.seed' must be an integer >= 0, got {seed!r}")
-    duration = float_value(where, "models.learned.duration", value.get("duration", 30.0))
-    if duration <= 0:
-        raise UserError(f"{where}: key 'models.learned.duration' must be > 0 s")
-    return LearnedModelSpec(None, str(value.get("profile", "closed-loop")), duration, seed)
+    sec = Section(where, value, "models.learned")
+    spec = LearnedModelSpec(None, sec.text("profile", default="closed-loop"),
+                            sec.number("duration", 30.0, positive=True), sec.integer("seed", 0))
+    sec.done()
+    return spec
 
 
 MIN_TURBULENT_WIND = 0.1  # m/s, the smallest mean wind the SITL accepts with Dryden turbulence
@@ -265,8 +250,6 @@ def _lowest(dist: Distribution) -> float:
     return a - 4.0 * b if dist.kind == "normal" else a
 
 
-TOP_KEYS = ("name", "seed", "vehicle", "pipeline", "grid", "fixed", "random", "samples", "models",
-            "identify_budget", "keep_flights", "description")
 
 
 def load_campaign(path: str | Path) -> CampaignSpec:
@@ -280,26 +263,25 @@ def load_campaign(path: str | Path) -> CampaignSpec:
     data = load_yaml_file(p, where)
     if not isinstance(data, dict):
         raise UserError(f"{where}: expected a mapping of campaign keys, got {describe_value(data)}")
-    for key in data:
-        if key not in TOP_KEYS:
-            raise UserError(f"{where}: unknown key '{key}'", hint=f"known keys: {', '.join(TOP_KEYS)}")
-    name = data.get("name", p.stem)
-    if not isinstance(name, str) or not name:
-        raise UserError(f"{where}: key 'name' must be a text")
-    seed = data.get("seed", 0)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise UserError(f"{where}: key 'seed' must be an integer >= 0, got {seed!r}")
-    vehicle_ref = str(data.get("vehicle", "fang-chen-buaa"))
+    top = Section(where, data, hint="see README.md, 'Campaigns', for every key")
+    name = top.text("name", default=p.stem)
+    seed = top.integer("seed", 0)
+    vehicle_ref = str(top.raw("vehicle", "fang-chen-buaa"))
     local = (p.parent / vehicle_ref)
     vehicle_path = local.resolve() if local.is_file() else resolve_vehicle_path(vehicle_ref)
     load_vehicle(vehicle_path)  # checks it
     vehicle_data = load_yaml_file(vehicle_path, f"vehicle file {vehicle_path}")
-    pipeline = data.get("pipeline", "fly")
-    if pipeline not in PIPELINES:
-        raise UserError(f"{where}: key 'pipeline' must be one of {', '.join(PIPELINES)}, got {pipeline!r}")
+    pipeline = top.text("pipeline", PIPELINES, default="fly")
+    grid_sec, fixed_sec, random_sec = (top.optional_section(k) for k in ("grid", "fixed", "random"))
+    models_sec = top.optional_section("models")
+    samples = top.integer("samples", 1, low=1)
+    budget = top.integer("identify_budget", 60, low=1)
+    keep = top.flag("keep_flights", False)
+    top.raw("description", "")
+    top.done()
 
     grid: dict[str, tuple[Any, ...]] = {}
-    for raw, values in _mapping(where, data, "grid").items():
+    for raw, values in grid_sec.data.items():
         n = _check_name(where, f"grid.{raw}", raw, vehicle_data, vehicle_ref)
         if not isinstance(values, list) or not values:
             raise UserError(f"{where}: key 'grid.{n}' must be a non-empty list of values")
@@ -309,11 +291,11 @@ def load_campaign(path: str | Path) -> CampaignSpec:
             raise UserError(f"{where}: key 'grid.{n}' lists a value twice")
         grid[n] = checked
     fixed = {}
-    for raw, value in _mapping(where, data, "fixed").items():
+    for raw, value in fixed_sec.data.items():
         n = _check_name(where, f"fixed.{raw}", raw, vehicle_data, vehicle_ref)
         fixed[n] = _check_value(where, f"fixed.{n}", n, value, vehicle_data)
     random = {}
-    for raw, value in _mapping(where, data, "random").items():
+    for raw, value in random_sec.data.items():
         n = _check_name(where, f"random.{raw}", raw, vehicle_data, vehicle_ref)
         random[n] = _distribution(where, f"random.{n}", n, value, vehicle_data)
     for n in grid:
@@ -323,9 +305,6 @@ def load_campaign(path: str | Path) -> CampaignSpec:
     for n in fixed:
         if n in random:
             raise UserError(f"{where}: parameter '{n}' is both in 'fixed' and in 'random'")
-    samples = data.get("samples", 1)
-    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
-        raise UserError(f"{where}: key 'samples' must be an integer >= 1, got {samples!r}")
     if random and "samples" not in data:
         raise UserError(f"{where}: 'random' is given but 'samples' is not",
                         hint="say how many Monte-Carlo draws to fly, e.g. samples: 25")
@@ -343,17 +322,8 @@ def load_campaign(path: str | Path) -> CampaignSpec:
             raise UserError(f"{where}: key '{where_key}' can be {low:g} m/s with turbulence asked for",
                             hint=f"Dryden turbulence needs a mean wind of at least {MIN_TURBULENT_WIND} m/s "
                                  "(its time scale): start the range there, or fly still air without it")
-    models = _mapping(where, data, "models")
-    unknown = set(models) - {"learned"}
-    if unknown:
-        raise UserError(f"{where}: unknown key 'models.{sorted(unknown)[0]}'", hint="known: learned")
-    budget = data.get("identify_budget", 60)
-    if isinstance(budget, bool) or not isinstance(budget, int) or budget < 1:
-        raise UserError(f"{where}: key 'identify_budget' must be an integer >= 1 (generations per target), "
-                        f"got {budget!r}")
-    keep = data.get("keep_flights", False)
-    if not isinstance(keep, bool):
-        raise UserError(f"{where}: key 'keep_flights' must be true or false")
+    learned = _learned_model(where, p.parent, models_sec.raw("learned", None))
+    models_sec.done()
     names = {*grid, *fixed, *random}
     vehicle_keys = tuple(sorted(n for n in names if n not in FLIGHT_PARAMETERS))
     trajectories = [*grid.get("trajectory", ()), fixed.get("trajectory", FLIGHT_PARAMETERS["trajectory"][1])]
@@ -361,7 +331,7 @@ def load_campaign(path: str | Path) -> CampaignSpec:
         trajectories += list(random["trajectory"].args)
     files = {t: _trajectory_text(where, p.parent, t) for t in dict.fromkeys(trajectories)}
     return CampaignSpec(name, p.resolve(), seed, str(vehicle_path), pipeline, grid, fixed, random, samples,
-                        _learned_model(where, p.parent, models.get("learned")), budget, keep, vehicle_keys,
+                        learned, budget, keep, vehicle_keys,
                         {t: text for t, text in files.items() if text is not None})
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 
 from bridge.errors import UserError
+from bridge.yaml_file import load_yaml_text
 from quadsr.campaign.tasks import Task
 
 # Metrics copied into a result row, from controller.metrics.FlightMetrics (SI: m, s, rad).
@@ -48,7 +49,7 @@ class TaskContext:
 
 def task_vehicle_yaml(nominal_yaml: str, params: dict[str, Any], vehicle_keys: tuple[str, ...]) -> str:
     """The nominal vehicle file's text with the task's vehicle-key values written in."""
-    data = yaml.safe_load(nominal_yaml)
+    data = load_yaml_text(nominal_yaml, "the nominal vehicle file")
     for key in vehicle_keys:
         node = data
         parts = key.split(".")
