@@ -117,6 +117,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="throttle -> rotor speed for logs without rotor speeds (a vehicle name/file or 'Cr,wb')",
     )
     p.add_argument(
+        "--weak",
+        action="store_true",
+        help="weak (integral) form: data and model integrated against test functions (1 - s^2)^4 over "
+        "+-T windows; sensor targets then undifferentiated-as-possible (raw specific force, 5-sample gyro "
+        "derivative), every loss and R^2 on the weak rows; default engine only",
+    )
+    p.add_argument(
+        "--weak-window", type=float, default=None, metavar="T",
+        help="half window T of the weak form's test functions, s (default 0.2)",
+    )
+    p.add_argument(
         "--settings",
         default=None,
         metavar="FILE.yaml",
@@ -221,12 +232,15 @@ def _load(
     """Read, segment and join the logs, printing what was kept and every reason rows were dropped."""
     from identification.dataset import load_datasets
     from identification.segmentation import parse_window
+    from identification.weak_form import RAW_SENSOR_TARGETS
 
     windows = [parse_window(w) for w in (getattr(args, "window", None) or [])]
     airborne = not getattr(args, "all_rows", False)
     dataset = load_datasets(
         logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne,
         rate_hz=getattr(args, "rate", None),
+        sensor_settings=RAW_SENSOR_TARGETS if getattr(args, "weak", False) and targets_from == "sensors"
+        else None,
     )
     for line in dataset.segments:
         print(line, file=sys.stderr)
@@ -295,6 +309,16 @@ def run_identify(args: argparse.Namespace) -> int:
 
         vehicle_config = load_vehicle(args.vehicle)
         vehicle, gravity = vehicle_provenance(vehicle_config), vehicle_config.gravity
+    weak = None
+    if args.weak or args.weak_window is not None:
+        from identification.weak_form import WeakSettings
+
+        args.weak = True
+        weak = WeakSettings() if args.weak_window is None else WeakSettings(half_window_s=args.weak_window)
+        weak.check()
+        if args.engine not in ("default", "discovery"):
+            raise UserError(f"--weak needs the default (discovery) engine, not {args.engine}",
+                            hint="drop --weak or use --engine default")
     dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
     pick = _load(args.pick_log, args.targets_from, args.motor_curve, args) if args.pick_log else None
     check = _load(args.validate_log, args.targets_from, args.motor_curve, args) if args.validate_log else None
@@ -336,6 +360,7 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle=vehicle,
         progress=not args.no_progress,
         gravity=gravity,
+        weak=weak,
     )
     if motor is not None:
         model.engine["motor_model"] = motor.as_dict()
@@ -345,7 +370,8 @@ def run_identify(args: argparse.Namespace) -> int:
     where = ", ".join(
         f"{b['file']} {b['t_start_s']:.2f}..{b['t_end_s']:.2f} s" for b in roles["validate"]
     )
-    print(f"validation (rows used neither to fit nor to pick: {where}):")
+    weak_note = f"; weak form, T = {weak.half_window_s:g} s: data and model integrated alike" if weak else ""
+    print(f"validation (rows used neither to fit nor to pick: {where}{weak_note}):")
     print(table_markdown(metrics), end="")
     _print_and_report(model, motor, split_roles(), args, out, vehicle_config)
     print(f"wrote {out}")
