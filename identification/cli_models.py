@@ -118,10 +118,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--weak",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="weak (integral) form: data and model integrated against test functions (1 - s^2)^4 over "
-        "+-T windows; sensor targets then undifferentiated-as-possible (raw specific force, 5-sample gyro "
-        "derivative), every loss and R^2 on the weak rows; default engine only",
+        "+-T windows, the sensor targets as raw as possible (specific force as measured, the gyro's "
+        "5-sample derivative), every loss and R^2 on the weak rows; default engine only. Default: on with "
+        "--targets-from sensors and the default engine, off otherwise (--no-weak turns it off)",
     )
     p.add_argument(
         "--weak-window", type=float, default=None, metavar="T",
@@ -310,6 +312,8 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle_config = load_vehicle(args.vehicle)
         vehicle, gravity = vehicle_provenance(vehicle_config), vehicle_config.gravity
     weak = None
+    if args.weak is None:  # measured better on sensor targets (README: the weak form), so the default there
+        args.weak = args.targets_from == "sensors" and args.engine in ("default", "discovery")
     if args.weak or args.weak_window is not None:
         from identification.weak_form import WeakSettings
 

@@ -85,3 +85,14 @@ def test_identify_in_the_weak_form_learns_yaw_acceleration(noisy_flight):
     assert r2(exact[:, 5], pred) > 0.995  # the learned point model, against the truth at every row
     with pytest.raises(UserError, match="default"):
         identify(ds, targets=("dwz",), engine="sparse", budget=1, weak=WeakSettings(), progress=False)
+
+
+def test_cli_refuses_a_bad_window_and_another_engine(tmp_path, capsys):
+    from quadsr.cli import main
+
+    log = tmp_path / "any.tlog"
+    log.write_bytes(b"")  # never read: the options are refused first
+    assert main(["identify", str(log), "-o", str(tmp_path / "m.yaml"), "--weak-window", "-1"]) == 2
+    assert "half window" in capsys.readouterr().err
+    assert main(["identify", str(log), "-o", str(tmp_path / "m.yaml"), "--weak", "--engine", "sparse"]) == 2
+    assert "default (discovery) engine" in capsys.readouterr().err
