@@ -175,6 +175,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--targets-from", default="truth", choices=("truth", "sensors"), help="as for identify")
     p.add_argument("--motor-curve", default=None, metavar="VEHICLE|SLOPE,OFFSET", help="as for identify")
+    p.add_argument("--weak", action=argparse.BooleanOptionalAction, default=None,
+                   help="Table I in the weak form, as identify (default: on with --targets-from sensors)")
+    p.add_argument("--weak-window", type=float, default=None, metavar="T", help="as for identify")
     _add_row_options(p)
     p.set_defaults(func=run_validate)
 
@@ -216,6 +219,20 @@ def _add_row_options(p: argparse.ArgumentParser) -> None:
         help="rate of the common timeline every topic is interpolated onto (default: the log's natural one, "
         "e.g. ATT's for DataFlash)",
     )
+
+
+def _weak_settings(args: argparse.Namespace):
+    """WeakSettings from --weak/--no-weak and --weak-window (None: point targets). Default: on with
+    --targets-from sensors (measured better there: README, "Targets"), off otherwise. Sets args.weak."""
+    from identification.weak_form import WeakSettings
+
+    if args.weak is None:
+        args.weak = args.targets_from == "sensors" or args.weak_window is not None
+    if not args.weak:
+        return None
+    weak = WeakSettings() if args.weak_window is None else WeakSettings(half_window_s=args.weak_window)
+    weak.check()
+    return weak
 
 
 def _output_path(text: str, flag: str) -> Path:
@@ -311,15 +328,10 @@ def run_identify(args: argparse.Namespace) -> int:
 
         vehicle_config = load_vehicle(args.vehicle)
         vehicle, gravity = vehicle_provenance(vehicle_config), vehicle_config.gravity
-    weak = None
-    if args.weak is None:  # measured better on sensor targets (README: the weak form), so the default there
-        args.weak = args.targets_from == "sensors" and args.engine in ("default", "discovery")
-    if args.weak or args.weak_window is not None:
-        from identification.weak_form import WeakSettings
-
-        args.weak = True
-        weak = WeakSettings() if args.weak_window is None else WeakSettings(half_window_s=args.weak_window)
-        weak.check()
+    if args.weak is None and args.engine not in ("default", "discovery"):
+        args.weak = False
+    weak = _weak_settings(args)
+    if weak is not None:
         if args.engine not in ("default", "discovery"):
             raise UserError(f"--weak needs the default (discovery) engine, not {args.engine}",
                             hint="drop --weak or use --engine default")
@@ -417,14 +429,16 @@ def run_validate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", hint="give a folder for the outputs")
+    weak = _weak_settings(args)
     dataset = _load([args.log], args.targets_from, args.motor_curve, args)
     if dataset.u_from_throttle or ("motor_model" in model.engine and "throttle" in dataset.aux):
         from identification.motor_model import apply_thrust_curve, curve_from_dict
 
         curve = curve_from_dict(model.engine.get("motor_model"), args.model)
         dataset = apply_thrust_curve(dataset, curve)
-    report = validate(model, dataset, out, reference)
-    print(f"Table I: {args.model} on {args.log} ({len(dataset)} rows)")
+    report = validate(model, dataset, out, reference, weak)
+    form = f", weak form T = {weak.half_window_s:g} s: targets and model integrated alike" if weak else ""
+    print(f"Table I: {args.model} on {args.log} ({len(dataset)} rows{form})")
     print(table_markdown(report.metrics), end="")
     if report.comparisons is not None:
         print(f"\nagainst the reference {args.reference}:")

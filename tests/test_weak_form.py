@@ -96,3 +96,14 @@ def test_cli_refuses_a_bad_window_and_another_engine(tmp_path, capsys):
     assert "half window" in capsys.readouterr().err
     assert main(["identify", str(log), "-o", str(tmp_path / "m.yaml"), "--weak", "--engine", "sparse"]) == 2
     assert "default (discovery) engine" in capsys.readouterr().err
+
+
+def test_validate_reports_table_one_in_the_weak_form(noisy_flight, tmp_path):
+    from identification.validate import validate
+
+    ds, _ = noisy_flight
+    truth = true_model("fang-chen-buaa")
+    point = validate(truth, ds, tmp_path / "point").metrics["dwz"]
+    weak = validate(truth, ds, tmp_path / "weak", weak=WeakSettings()).metrics["dwz"]
+    assert point["r2"] < 0.9 and weak["r2"] > 0.999, (point, weak)
+    assert weak["rows"] == weak_operator(ds.t).shape[0] < len(ds)
