@@ -15,8 +15,8 @@ So each interval becomes one row, at its midpoint t_k + dt/2, whose regressors g
   every thrust and moment term (u^2) has its exact interval mean; the lag ratio r = exp(-dt / Tm) is
   estimated from the log (motor_lag_ratio), not taken from a vehicle file.
 Measured on 9 s closed-loop flights from the ground (quadsr excite --profile closed-loop, ideal sensors),
-true model's lowest R^2 over the six targets: fang-chen-aero 0.999994 (per-sample kink-aware stencils) ->
-0.99999997, fang-chen-buaa 0.999988 -> 0.99999997 (bench/step_targets.py).
+true model's lowest R^2 over the six targets: fang-chen-aero 0.99999410 (per-sample kink-aware stencils) ->
+0.99999995, fang-chen-buaa 0.99998764 -> 0.99999997 (bench/step_targets.py).
 """
 
 from __future__ import annotations
