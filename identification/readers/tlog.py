@@ -207,7 +207,8 @@ def read_tlog_dataset(
         throttles = _held_throttles(times, commands)
         ratio = motor_lag_ratio(u, throttles, usable)
         if ratio is not None:
-            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio)
+            g_true = STANDARD_GRAVITY if gravity is None else float(gravity)
+            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true)
             steps = RowFilter(n - 1)
             for reason, bad in filt.reasons:
                 steps.drop(reason, bad[:-1] | bad[1:])
