@@ -16,7 +16,6 @@ from bridge.errors import UserError
 from bridge.tlog import read_tlog
 from identification.dataset import INPUT_NAMES, STATE_NAMES, TARGET_NAMES, Dataset, load_dataset
 from identification.excite import fly
-from identification.readers.tlog import read_tlog_dataset
 
 
 @pytest.fixture(scope="module")
@@ -70,11 +69,15 @@ def test_rows_columns_and_provenance(flights):
     ds = load_dataset(path)
     assert ds.format == "tlog" and ds.target_source == "truth" and ds.source == str(path)
     assert ds.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
-    # 750 steps + the time-0 step: one row per step interval, at its midpoint (identification.step_targets)
-    assert len(ds) == 751 - 1
-    assert ds.dropped_rows == 0
-    assert np.allclose(np.diff(ds.t), 0.004) and abs(ds.t[0] - 0.002) < 1e-9
-    assert any("exact mean accelerations over each 4 ms step" in w for w in ds.warnings)
+    # 750 steps + the time-0 step; held commands: point derivatives, 2 rows lost at each end to the stencil
+    assert len(ds) == 751 - 4
+    assert ds.dropped_rows == 4 and sum(ds.drop_reasons.values()) == 4
+    assert np.allclose(np.diff(ds.t), 0.004)
+    assert any("commands held" in w for w in ds.warnings)
+    # paper-validate's sinusoids change every command every step: one row per step interval, at its midpoint
+    val = load_dataset(flights["val"])
+    assert len(val) == 501 - 1 and val.dropped_rows == 0 and abs(val.t[0] - 0.002) < 1e-9
+    assert any("exact mean accelerations over each 4 ms step" in w for w in val.warnings)
     assert ds.xi.shape == (len(ds), len(STATE_NAMES)) and ds.u.shape == (len(ds), len(INPUT_NAMES))
     assert np.isfinite(ds.xi).all() and np.isfinite(ds.u).all() and np.isfinite(ds.targets).all()
     # Euler angles in rad within their ranges; rotor speeds in rad/s within the paper's 0..1000
@@ -179,7 +182,7 @@ def test_rotor_speeds_from_commands_through_the_motor_curve(flights, tmp_path):
     no_rpm = tmp_path / "no_rpm.tlog"
     _filtered_copy(flights["train"], no_rpm, {"RAW_RPM"})
     ds = load_dataset(no_rpm, motor_curve="fang-chen-buaa")
-    ref = read_tlog_dataset(flights["train"], step_intervals=False)  # one row per step, as ds
+    ref = load_dataset(flights["train"])
     common, ia, ib = np.intersect1d(ds.t, ref.t, return_indices=True)
     assert len(common) > 0.9 * len(ref)
     # the same first-order motor lag as the SITL: speeds agree to a fraction of a rad/s

@@ -101,7 +101,7 @@ def test_paper_profiles_fly_open_loop_from_altitude(sitl_at_altitude, tmp_path):
     assert "500 steps, 2.000 s simulated" in run.stdout and "final state" in run.stdout
     assert "excite paper-train" in run.stderr and "100%" in run.stderr  # the progress bar, on stderr
     ds = load_dataset(train)
-    assert len(ds) == 501 - 1  # one row per step interval (identification.step_targets)
+    assert len(ds) == 501 - 4
     fit = r2(ds.targets, physics_targets(ds, "none"))
     assert (fit > 0.9999).all(), fit
     # the rotor speeds are the SITL's true (lagged) speeds, spread over the groups' ranges

@@ -6,10 +6,11 @@ rotor, index 0..3 = motors 1..4, as bridge.messages sends them; ESC_STATUS where
 HIL_SENSOR. Only frames from the SITL's HIL component (the sender of HIL_SENSOR) are used; the time-0
 datagram the SITL repeats while waiting is counted once.
 
-Truth targets of a log with rotor speeds and the companion's commands (every quadsr flight): one row per
-step interval [t_k, t_k+1] at its midpoint, the targets the exact mean accelerations over the step, the
-state and rotor speeds those of the midpoint under the held command (identification.step_targets). Without
-commands (or without a visible motor lag): one row per step with kink-aware point derivatives.
+Truth targets of a log with rotor speeds and the companion's commands whose commands change at most steps
+(a controller, sinusoids): one row per step interval [t_k, t_k+1] at its midpoint, the targets the exact
+mean accelerations over the step, the state and rotor speeds those of the midpoint under the held command
+(identification.step_targets). Held commands (paper-train), no commands or no visible motor lag: one row
+per step with kink-aware point derivatives.
 
 Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
 free-flight equations do not hold) are dropped, as are rows whose differentiation stencil would span a
@@ -41,6 +42,10 @@ from identification.targets import (
 
 STEP_S = 0.004
 KINK_THROTTLE = 0.02  # a command change above this (about 23 rad/s for the default vehicle) is a kink
+# step-mean truth targets when more than this fraction of steps change the command (a controller, sinusoids:
+# every sample a kink); below it (held commands, as paper-train) the point stencils are 4th order between
+# the few kinks, and beat the step means, whose regressors are second order in the body's turn over a step
+STEP_MEANS_ABOVE = 0.5
 _STATE_TYPES = {
     "HIL_STATE_QUATERNION",
     "LOCAL_POSITION_NED",
@@ -203,9 +208,17 @@ def read_tlog_dataset(
     no_sensor = len(state_times - set(rows))
     if no_sensor:
         extra["step without HIL_SENSOR"] = no_sensor
-    if targets == "truth" and rotor is None and commands and step_intervals:
-        throttles = _held_throttles(times, commands)
-        ratio = motor_lag_ratio(u, throttles, usable)
+    throttles = _held_throttles(times, commands) if commands else None
+    if targets == "truth" and rotor is None and throttles is not None and step_intervals:
+        pairs = np.isfinite(throttles[:-1]).all(axis=1) & np.isfinite(throttles[1:]).all(axis=1)
+        steps_changed = np.any(np.diff(throttles, axis=0)[pairs] != 0.0, axis=1)
+        changing = float(np.mean(steps_changed)) if pairs.any() else 0.0
+        ratio = motor_lag_ratio(u, throttles, usable) if changing > STEP_MEANS_ABOVE else None
+        if changing <= STEP_MEANS_ABOVE:
+            notes.append(
+                f"truth targets: commands held ({100 * changing:.0f}% of steps change them): kink-aware "
+                "point derivatives, 4th order between the kinks"
+            )
         if ratio is not None:
             g_true = STANDARD_GRAVITY if gravity is None else float(gravity)
             t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true)
@@ -221,7 +234,8 @@ def read_tlog_dataset(
                 "estimated from the log)"
             )
             return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
-        notes.append("truth targets: no motor lag seen in the log's speeds; kink-aware point derivatives")
+        elif changing > STEP_MEANS_ABOVE:
+            notes.append("truth targets: no motor lag seen in the log's speeds; kink-aware point derivatives")
     if targets == "truth":
         kinks = _command_kinks(times, commands)
         tgt[idx] = truth_targets(
