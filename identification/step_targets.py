@@ -14,6 +14,8 @@ So each interval becomes one row, at its midpoint t_k + dt/2, whose regressors g
   logged speeds follow under a held command c (c = (u_k+1 - r u_k) / (1 - r) per interval and rotor), so
   every thrust and moment term (u^2) has its exact interval mean; the lag ratio r = exp(-dt / Tm) is
   estimated from the log (motor_lag_ratio), not taken from a vehicle file.
+The .tlog reader uses these rows for flights whose commands change at most steps; for held commands
+(paper-train) point stencils are 4th order between the few kinks and stay (identification.readers.tlog).
 Measured on 9 s closed-loop flights from the ground (quadsr excite --profile closed-loop, ideal sensors),
 true model's lowest R^2 over the six targets: fang-chen-aero 0.99999410 (per-sample kink-aware stencils) ->
 0.99999995, fang-chen-buaa 0.99998764 -> 0.99999997 (bench/step_targets.py).
