@@ -317,7 +317,7 @@ def main() -> int:
                 wall = time.perf_counter() - start
                 row = score(case.name, "discovery-weak", model, raw_val, reference, wall, weak=True)
             case_rows.append(row)
-            print(f"  {engine}: lowest R^2 {min(row.r2.values()):.6f}, terms {row.found}/{row.missing}/"
+            print(f"  {row.engine}: lowest R^2 {min(row.r2.values()):.6f}, terms {row.found}/{row.missing}/"
                   f"{row.extra} of {row.reference_terms}, coef. error {row.max_error:.2e}, {wall:.1f} s",
                   flush=True)
         rows += case_rows
