@@ -19,6 +19,13 @@ on every case: the true terms and no others (so at most 1.5x the true term count
 validation R^2 >= 0.9999 on every target, a lowest R^2 at least every baseline's, and a SITL flight of 60 s
 identified in under 2 minutes. PASS only when every floor holds.
 
+Realistic-sensor cases (`... realistic sensors`): flown with `--sensors realistic`, targets from the IMU.
+Ours runs twice: `discovery` on the default per-axis Savitzky-Golay targets (validation R^2 against the
+validation flight's Savitzky-Golay targets, pointwise), and `discovery-weak`, the weak form that quadsr
+identify uses by default on sensor targets (validation R^2 of the weak form: the validation flight's raw
+sensor targets and the model both integrated against the same test functions). The floors (coefficients
+within 15 %, validation R^2 >= 0.995) are on `discovery-weak`; the baselines get the Savitzky-Golay targets.
+
 Usage: python bench/discovery.py [--cases NAME,...] [--engines NAME,...] [--rows N] [--seed N]
                                  [--operon-generations N] [--train-duration S] [--out DIR]
 """
@@ -45,9 +52,11 @@ from identification.effects_physics import Effects, body_expressions, flight_row
 from identification.identify import DEFAULT_BUDGET, identify  # noqa: E402
 from identification.kinematics import rotation_matrix_sym  # noqa: E402
 from identification.library import DEFAULT_GROUPS, Feature, build_library, compile_features  # noqa: E402
+from identification.metrics import weak_metrics  # noqa: E402
 from identification.model_file import SYMBOLS, TARGET_NAMES, VARIABLE_NAMES, Model  # noqa: E402
 from identification.true_model import motor_combinations_sym, true_model  # noqa: E402
 from identification.validate import compare_models, evaluate_model  # noqa: E402
+from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, weak_rows  # noqa: E402
 
 ENGINES = ("discovery", "sparse", "pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
 BASELINES = ("pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
@@ -61,6 +70,7 @@ class Case:
     effects: Effects = field(default_factory=Effects)
     sitl_vehicle: str | None = None  # fly the SITL with this vehicle (name or file) instead of synthetic rows
     height: tuple[float, float] = (2.0, 50.0)  # synthetic: height above ground range, m
+    sensors: bool = False  # SITL: realistic sensor preset, targets from the IMU (floors 15 % / 0.995)
 
 
 CASES: tuple[Case, ...] = (
@@ -74,6 +84,8 @@ CASES: tuple[Case, ...] = (
                                 frame_drag=0.02, linear_thrust=1e-3), height=(0.3, 3.0)),
     Case("sitl paper flights", sitl_vehicle="fang-chen-buaa"),
     Case("sitl fang-chen-aero", sitl_vehicle="fang-chen-aero"),  # the SITL issue's vehicle with effects
+    Case("sitl paper flights realistic sensors", sitl_vehicle="fang-chen-buaa", sensors=True),
+    Case("sitl fang-chen-aero realistic sensors", sitl_vehicle="fang-chen-aero", sensors=True),
 )
 VEHICLE = "fang-chen-buaa"
 
@@ -103,19 +115,22 @@ def vehicle_file(name: str) -> Path | None:
     return p if p.exists() else None
 
 
-def sitl_flights(case: Case, out: Path, seed: int, duration: float) -> tuple[Dataset, Dataset]:
-    """Fly paper-train (duration s) and paper-validate in fresh SITLs with the case's vehicle."""
+def sitl_flights(case: Case, out: Path, seed: int, duration: float) -> tuple[Dataset, Dataset, list[Path]]:
+    """Fly paper-train (duration s) and paper-validate in fresh SITLs with the case's vehicle; the datasets
+    (truth targets, or with realistic sensors the default sensor targets) and the two .tlog paths."""
     from quadsr.pipeline import OPEN_LOOP_SITL, fly_excitation
 
     path = vehicle_file(case.sitl_vehicle or "")
-    args = [*OPEN_LOOP_SITL, "--sensors", "ideal", "--vehicle", str(path)]
-    logs = []
+    preset = "realistic" if case.sensors else "ideal"
+    args = [*OPEN_LOOP_SITL, "--sensors", preset, "--vehicle", str(path)]
+    logs, tlogs = [], []
     for profile, dur in (("paper-train", duration), ("paper-validate", None)):
-        tlog = out / f"{case.sitl_vehicle}-{profile}.tlog"
+        tlog = out / f"{case.sitl_vehicle}-{preset}-{profile}.tlog"
         fly_excitation(profile, tlog, sitl_args=args, seed=seed, duration=dur, vehicle=str(path),
-                       log_path=out / f"sitl-{case.sitl_vehicle}-{profile}.log")
-        logs.append(load_dataset(tlog))
-    return logs[0], logs[1]
+                       log_path=out / f"sitl-{case.sitl_vehicle}-{preset}-{profile}.log")
+        logs.append(load_dataset(tlog, targets="sensors" if case.sensors else "truth"))
+        tlogs.append(tlog)
+    return logs[0], logs[1], tlogs
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -214,9 +229,17 @@ class Row:
     wall_s: float
 
 
-def score(case: str, engine: str, model: Model, val: Dataset, reference: Model, wall: float) -> Row:
-    """Validation R^2 and the term comparison against the reference."""
-    _, metrics = evaluate_model(model, val)
+def score(case: str, engine: str, model: Model, val: Dataset, reference: Model, wall: float,
+          weak: bool = False) -> Row:
+    """Validation R^2 and the term comparison against the reference (weak: R^2 of the weak form, the
+    validation flight's raw sensor targets and the model both integrated against the test functions)."""
+    if weak:
+        op = weak_rows(val.t, val.flight, WeakSettings())
+        pred = np.atleast_2d(model.evaluate(val.xi, val.u))
+        metrics = {n: weak_metrics(val.targets[:, TARGET_NAMES.index(n)], pred[:, j], op)
+                   for j, n in enumerate(model.target_names)}
+    else:
+        _, metrics = evaluate_model(model, val)
     comps = compare_models(model, reference)
     found = sum(sum(1 for r in c.rows if r.status == "both") for c in comps)
     errs = [c.max_relative_error for c in comps if c.max_relative_error is not None]
@@ -264,7 +287,7 @@ def main() -> int:
                 continue
             from bridge.vehicle import load_vehicle
 
-            train, val = sitl_flights(case, out, args.seed, args.train_duration)
+            train, val, tlogs = sitl_flights(case, out, args.seed, args.train_duration)
             reference = true_model(load_vehicle(str(vehicle_file(case.sitl_vehicle))))
             gravity = load_vehicle(str(vehicle_file(case.sitl_vehicle))).gravity
         else:
@@ -281,18 +304,32 @@ def main() -> int:
             model = fit(engine, train, args.seed, gravity, args.budget, args.operon_generations)
             wall = time.perf_counter() - start
             row = score(case.name, engine, model, val, reference, wall)
+            if case.sensors and engine == "discovery":  # ours, also in the weak form (quadsr's default there)
+                case_rows.append(row)
+                print(f"  {engine} (point SG targets): lowest R^2 {min(row.r2.values()):.6f}, terms "
+                      f"{row.found}/{row.missing}/{row.extra} of {row.reference_terms}, coef. error "
+                      f"{row.max_error:.2e}, {wall:.1f} s", flush=True)
+                raw_train, raw_val = (load_dataset(p, targets="sensors", sensor_settings=RAW_SENSOR_TARGETS)
+                                      for p in tlogs)
+                start = time.perf_counter()
+                model = identify(raw_train, budget=args.budget, seed=args.seed, progress=False,
+                                 gravity=gravity, weak=WeakSettings())
+                wall = time.perf_counter() - start
+                row = score(case.name, "discovery-weak", model, raw_val, reference, wall, weak=True)
             case_rows.append(row)
-            print(f"  {engine}: lowest R^2 {min(row.r2.values()):.6f}, terms {row.found}/{row.missing}/"
+            print(f"  {row.engine}: lowest R^2 {min(row.r2.values()):.6f}, terms {row.found}/{row.missing}/"
                   f"{row.extra} of {row.reference_terms}, coef. error {row.max_error:.2e}, {wall:.1f} s",
                   flush=True)
         rows += case_rows
-        ours = next((r for r in case_rows if r.engine == "discovery"), None)
+        ours = next((r for r in case_rows if r.engine == ("discovery-weak" if case.sensors else "discovery")),
+                    None)
         if ours is None:
             continue
         low = min(ours.r2.values())
+        coef_floor, r2_floor = (0.15, 0.995) if case.sensors else (0.05, 0.9999)
         floors.append((f"{case.name}: the true terms and no others", ours.missing == 0 and ours.extra == 0))
-        floors.append((f"{case.name}: coefficients within 5%", ours.max_error <= 0.05))
-        floors.append((f"{case.name}: validation R^2 >= 0.9999 on every target", low >= 0.9999))
+        floors.append((f"{case.name}: coefficients within {coef_floor:.0%}", ours.max_error <= coef_floor))
+        floors.append((f"{case.name}: validation R^2 >= {r2_floor} on every target", low >= r2_floor))
         floors.append((f"{case.name}: at most 1.5x the true term count",
                        ours.found + ours.extra <= 1.5 * ours.reference_terms))
         others = [r for r in case_rows if r.engine in BASELINES]

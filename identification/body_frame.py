@@ -19,13 +19,14 @@ counting as dimensionless (PhySO-style unit vectors):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import sympy
 
 from bridge.rotations import rotation_matrix
 from identification.kinematics import rotation_matrix_sym
-from identification.metrics import table_metrics
+from identification.metrics import weak_metrics
 from identification.model_file import (
     SYMBOLS,
     TARGET_NAMES,
@@ -165,10 +166,12 @@ def composed_targets(
     body: BodyModel,
     wanted: tuple[str, ...] | list[str],
     splits: dict[str, tuple[np.ndarray, np.ndarray]],
+    operators: dict[str, Any] | None = None,
 ) -> dict[str, TargetModel]:
     """The wanted NED/FRD targets composed from the body model, with metrics per split on the NED data.
 
     splits: name (train, pick, validation) -> (X (N,16), Y (N,6) the NED targets ax ay az dwx dwy dwz).
+    operators: name -> weak-form matrix V (M, N) (identification.weak_form): metrics on V Y and V f(X).
     """
     exprs: dict[str, sympy.Expr] = {}
     bt = body.targets
@@ -186,8 +189,8 @@ def composed_targets(
         pred = np.atleast_2d(model.evaluate(Xs[:, :12], Xs[:, 12:]))
         for j, n in enumerate(model.target_names):
             y = Ys[:, TARGET_NAMES.index(n)]
-            ok = np.isfinite(y) & np.isfinite(pred[:, j])
-            out.setdefault(n, TargetModel(n, exprs[n])).metrics[split] = table_metrics(y[ok], pred[ok, j])
+            op = (operators or {}).get(split)
+            out.setdefault(n, TargetModel(n, exprs[n])).metrics[split] = weak_metrics(y, pred[:, j], op)
     for n, t in out.items():
         parts = [bt[b] for b in (BODY_FORCE_NAMES if n in ("ax", "ay", "az") else (n,))]
         t.engine = "+".join(sorted({p.engine for p in parts if p.engine})) or None

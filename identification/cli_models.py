@@ -117,6 +117,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="throttle -> rotor speed for logs without rotor speeds (a vehicle name/file or 'Cr,wb')",
     )
     p.add_argument(
+        "--weak",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="weak (integral) form: data and model integrated against test functions (1 - s^2)^4 over "
+        "+-T windows, the sensor targets as raw as possible (specific force as measured, the gyro's "
+        "5-sample derivative), every loss and R^2 on the weak rows; default engine only. Default: on with "
+        "--targets-from sensors and the default engine, off otherwise (--no-weak turns it off)",
+    )
+    p.add_argument(
+        "--weak-window", type=float, default=None, metavar="T",
+        help="half window T of the weak form's test functions, s (default 0.2)",
+    )
+    p.add_argument(
         "--settings",
         default=None,
         metavar="FILE.yaml",
@@ -162,6 +175,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--targets-from", default="truth", choices=("truth", "sensors"), help="as for identify")
     p.add_argument("--motor-curve", default=None, metavar="VEHICLE|SLOPE,OFFSET", help="as for identify")
+    p.add_argument("--weak", action=argparse.BooleanOptionalAction, default=None,
+                   help="Table I in the weak form, as identify (default: on with --targets-from sensors)")
+    p.add_argument("--weak-window", type=float, default=None, metavar="T", help="as for identify")
     _add_row_options(p)
     p.set_defaults(func=run_validate)
 
@@ -205,6 +221,20 @@ def _add_row_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _weak_settings(args: argparse.Namespace):
+    """WeakSettings from --weak/--no-weak and --weak-window (None: point targets). Default: on with
+    --targets-from sensors (measured better there: README, "Targets"), off otherwise. Sets args.weak."""
+    from identification.weak_form import WeakSettings
+
+    if args.weak is None:
+        args.weak = args.targets_from == "sensors" or args.weak_window is not None
+    if not args.weak:
+        return None
+    weak = WeakSettings() if args.weak_window is None else WeakSettings(half_window_s=args.weak_window)
+    weak.check()
+    return weak
+
+
 def _output_path(text: str, flag: str) -> Path:
     path = Path(text)
     if path.is_dir():
@@ -221,12 +251,15 @@ def _load(
     """Read, segment and join the logs, printing what was kept and every reason rows were dropped."""
     from identification.dataset import load_datasets
     from identification.segmentation import parse_window
+    from identification.weak_form import RAW_SENSOR_TARGETS
 
     windows = [parse_window(w) for w in (getattr(args, "window", None) or [])]
     airborne = not getattr(args, "all_rows", False)
     dataset = load_datasets(
         logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne,
         rate_hz=getattr(args, "rate", None),
+        sensor_settings=RAW_SENSOR_TARGETS if getattr(args, "weak", False) and targets_from == "sensors"
+        else None,
     )
     for line in dataset.segments:
         print(line, file=sys.stderr)
@@ -295,6 +328,13 @@ def run_identify(args: argparse.Namespace) -> int:
 
         vehicle_config = load_vehicle(args.vehicle)
         vehicle, gravity = vehicle_provenance(vehicle_config), vehicle_config.gravity
+    if args.weak is None and args.engine not in ("default", "discovery"):
+        args.weak = False
+    weak = _weak_settings(args)
+    if weak is not None:
+        if args.engine not in ("default", "discovery"):
+            raise UserError(f"--weak needs the default (discovery) engine, not {args.engine}",
+                            hint="drop --weak or use --engine default")
     dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
     pick = _load(args.pick_log, args.targets_from, args.motor_curve, args) if args.pick_log else None
     check = _load(args.validate_log, args.targets_from, args.motor_curve, args) if args.validate_log else None
@@ -336,6 +376,7 @@ def run_identify(args: argparse.Namespace) -> int:
         vehicle=vehicle,
         progress=not args.no_progress,
         gravity=gravity,
+        weak=weak,
     )
     if motor is not None:
         model.engine["motor_model"] = motor.as_dict()
@@ -345,7 +386,8 @@ def run_identify(args: argparse.Namespace) -> int:
     where = ", ".join(
         f"{b['file']} {b['t_start_s']:.2f}..{b['t_end_s']:.2f} s" for b in roles["validate"]
     )
-    print(f"validation (rows used neither to fit nor to pick: {where}):")
+    weak_note = f"; weak form, T = {weak.half_window_s:g} s: data and model integrated alike" if weak else ""
+    print(f"validation (rows used neither to fit nor to pick: {where}{weak_note}):")
     print(table_markdown(metrics), end="")
     _print_and_report(model, motor, split_roles(), args, out, vehicle_config)
     print(f"wrote {out}")
@@ -387,14 +429,16 @@ def run_validate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", hint="give a folder for the outputs")
+    weak = _weak_settings(args)
     dataset = _load([args.log], args.targets_from, args.motor_curve, args)
     if dataset.u_from_throttle or ("motor_model" in model.engine and "throttle" in dataset.aux):
         from identification.motor_model import apply_thrust_curve, curve_from_dict
 
         curve = curve_from_dict(model.engine.get("motor_model"), args.model)
         dataset = apply_thrust_curve(dataset, curve)
-    report = validate(model, dataset, out, reference)
-    print(f"Table I: {args.model} on {args.log} ({len(dataset)} rows)")
+    report = validate(model, dataset, out, reference, weak)
+    form = f", weak form T = {weak.half_window_s:g} s: targets and model integrated alike" if weak else ""
+    print(f"Table I: {args.model} on {args.log} ({len(dataset)} rows{form})")
     print(table_markdown(report.metrics), end="")
     if report.comparisons is not None:
         print(f"\nagainst the reference {args.reference}:")

@@ -30,6 +30,7 @@ from identification.table import (  # noqa: F401  (re-exported: the table's name
     FlightInfo,
     file_sha256,
 )
+from identification.targets import SensorTargetSettings
 
 __all__ = ["Dataset", "FlightInfo", "detect_format", "file_sha256", "load_dataset", "load_datasets"]
 
@@ -44,6 +45,7 @@ def load_dataset(
     airborne: bool = True,
     windows: Sequence[Window] | None = None,
     segmentation: SegmentationSettings | None = None,
+    sensor_settings: SensorTargetSettings | None = None,
 ) -> Dataset:
     """Read one flight log into a Dataset (format from the file's content; targets 'truth' or 'sensors').
 
@@ -53,6 +55,7 @@ def load_dataset(
     rotated specific force for sensor targets (default 9.80665). airborne: keep only the rows the
     segmentation finds airborne (default); windows: (start, end) log seconds to keep instead.
     What the segmentation kept and why rows were dropped: `dataset.segments` (lines to print).
+    sensor_settings: the differentiator of sensor targets (logs with an IMU; a table brings its own targets).
     """
     if targets not in TARGET_SOURCES:
         raise UserError(f"targets must be one of {', '.join(TARGET_SOURCES)}, got {targets!r}")
@@ -60,7 +63,10 @@ def load_dataset(
         raise UserError(f"rate must be a positive number of Hz, got {rate_hz}")
     fmt = detect_format(path)
     reader = reader_for(fmt)
-    ds = reader(Path(path), targets=targets, motor_curve=motor_curve, rate_hz=rate_hz, gravity=gravity)
+    extra = {"sensor_settings": sensor_settings} if sensor_settings is not None and fmt != "table" else {}
+    ds = reader(
+        Path(path), targets=targets, motor_curve=motor_curve, rate_hz=rate_hz, gravity=gravity, **extra
+    )
     if airborne or windows:
         kept = segment(ds, windows=windows, settings=segmentation)
         if not len(kept) and not windows:

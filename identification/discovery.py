@@ -109,6 +109,8 @@ class DiscoveryEngine:
             thresholds=min((sparse or SparseSettings()).thresholds, self.settings.thresholds),
         )
         self.name = name
+        # weak form (identification.weak_form): (V of the fit rows, V of the holdout rows); set by identify
+        self.weak: tuple[Any, Any] | None = None
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
 
@@ -180,7 +182,13 @@ class DiscoveryEngine:
                 Z = _standardized(F)
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
-        scale = float(np.std(yh)) if len(yh) else 1.0
+        weak, weak_h = self.weak or (None, None)
+        y_point = y
+        if weak is not None:  # every column and the target integrated against the test functions
+            F = np.asarray(weak @ F)
+            Z = _standardized(F)
+            y = weak @ y
+        scale = float(np.std(yh if weak_h is None else weak_h @ yh)) if len(yh) else 1.0
         basis = _Basis(len(y))
         # rung 1 always in (combinations first: where a combination and its members are dependent, the
         # combination stands for them); later features only where independent of the pool
@@ -202,23 +210,29 @@ class DiscoveryEngine:
                 break
             pool += new
             round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
-            attach_holdout(round_cands, Xh, yh, loss)
+            attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             best = select(candidates, _SELECTION, scale=scale)
-            residual = y - best.evaluate(X)
+            residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
             if progress:
                 progress(0.7 * (rnd + 1) / max(s.rounds, 1), f"round {rnd + 1}: pool {len(pool)}")
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
         if best is not None and budget > 0:
             op_start = time.perf_counter()
-            gp = self._operon(best, columns, X, y, Xh, yh, seed, loss, budget)
-            attach_holdout(gp, Xh, yh, loss)
+            gp = self._operon(best, columns, X, y_point, Xh, yh, seed, loss, budget)
+            attach_holdout(gp, Xh, yh, loss, weak_h)
             candidates += gp
             self.timings["operon"] = time.perf_counter() - op_start
         if progress:
             progress(1.0, f"{len(candidates)} candidates")
         return candidates
+
+    def _loss(self, y: np.ndarray, pred: np.ndarray, loss: str) -> float:
+        """Training loss of point predictions (N,) against point targets y, in the weak form when it is on."""
+        if self.weak is None or self.weak[0] is None:
+            return loss_fn(y, pred, loss)
+        return loss_fn(self.weak[0] @ y, self.weak[0] @ pred, loss)
 
     def _sparsify(
         self,
@@ -232,7 +246,7 @@ class DiscoveryEngine:
     ) -> list[Candidate]:
         """Every new active set of the sparse paths over (1, pool features) as a candidate (seen: sets so far,
         as feature indices with -1 for the constant)."""
-        theta = np.hstack([np.ones((len(y), 1)), theta_pool])
+        theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
         problem = LeastSquaresProblem(theta, y)
         exprs = [sympy.Integer(1)] + [space.expressions[i] for i in pool]
         feats = [Feature(f"x{k}", e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
@@ -289,7 +303,10 @@ class DiscoveryEngine:
         loss: str,
         generations: int,
     ) -> list[Candidate]:
-        """Genetic programming on best's residual, seeded with the primitives and best's features."""
+        """Genetic programming on best's residual, seeded with the primitives and best's features.
+
+        In the weak form the GP sees the point residual (pyoperon fits samples); its candidates' losses are
+        then weak ones, as every other candidate's."""
         try:
             from pyoperon.sklearn import SymbolicRegressor
         except ImportError as exc:
@@ -344,7 +361,7 @@ class DiscoveryEngine:
                 Candidate(
                     expression=expr,
                     complexity=best.complexity + complexity(extra) + 1,
-                    train_loss=loss_fn(y, predict(X), loss),
+                    train_loss=self._loss(y, predict(X), loss),
                     engine=f"{self.name}(+operon)",
                     predict=predict,
                 )

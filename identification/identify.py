@@ -37,9 +37,10 @@ from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
 from identification.library import build_library, feature_matrix
-from identification.metrics import LOSSES, table_metrics
+from identification.metrics import LOSSES, table_metrics, weak_metrics
 from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel
 from identification.pareto import attach_holdout, front_points, select
+from identification.weak_form import WeakSettings, weak_rows
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
@@ -114,6 +115,7 @@ def identify(
     progress: bool = True,
     log: Callable[[str], None] | None = None,
     gravity: float = STANDARD_GRAVITY,
+    weak: WeakSettings | None = None,
 ) -> Model:
     """Identify the targets from a Dataset (identification.dataset); returns a learned Model.
 
@@ -122,6 +124,8 @@ def identify(
     gap_s (s) between blocks. r2_threshold: a target whose validation R^2 is below it is flagged.
     An engine that learns in the body frame (frame "body", the default engine) fits fx fy fz dwx dwy dwz
     (identification.body_frame, with `gravity` in m/s^2) and the NED targets are composed from them.
+    weak: fit, pick and report in the weak form (identification.weak_form): every loss and metric is on
+    the rows integrated against the test functions (windows inside each role's rows); default engine only.
     """
     if engine not in ENGINE_NAMES:
         raise UserError(f"unknown engine {engine!r}", hint=f"choose one of {', '.join(ENGINE_NAMES)}")
@@ -146,6 +150,11 @@ def identify(
     Xp, Yp = _rows(roles.pick)
     Xv, Yv = _rows(roles.validate)
     body_frame = getattr(make_engine(engine, settings), "frame", "ned") == "body"
+    if weak is not None:
+        weak.check()
+        if not hasattr(make_engine(engine, settings), "weak"):
+            raise UserError(f"the weak form needs the default (discovery) engine, not {engine!r}",
+                            hint="drop --weak or use --engine default")
     fit_names, Yf, Ypf, Yvf = tuple(targets), Y, Yp, Yv
     if body_frame:
         fit_names = body_fit_names(targets)
@@ -169,6 +178,14 @@ def identify(
         okp = np.all(np.isfinite(Xp), axis=1) & np.isfinite(yp)
         okv = np.all(np.isfinite(Xv), axis=1) & np.isfinite(yv)
         eng = make_engine(engine, settings)
+        ops = {"train": None, "pick": None, "validation": None}
+        if weak is not None:
+            ops = {
+                "train": weak_rows(roles.fit.t[ok], roles.fit.flight[ok], weak),
+                "pick": weak_rows(roles.pick.t[okp], roles.pick.flight[okp], weak),
+                "validation": weak_rows(roles.validate.t[okv], roles.validate.flight[okv], weak),
+            }
+            eng.weak = (ops["train"], ops["pick"])
         bar = _Bar(name, progress)
         start = time.perf_counter()
         try:
@@ -179,13 +196,15 @@ def identify(
         if not candidates:
             bar.close("no candidates")
             raise UserError(f"engine {engine} found no expression for {name}", hint="raise --budget")
-        attach_holdout(candidates, Xp[okp], yp[okp], loss)
-        chosen = select(candidates, settings.selection, scale=float(np.std(yp[okp])) if okp.any() else 1.0)
+        attach_holdout(candidates, Xp[okp], yp[okp], loss, ops["pick"])
+        pick_y = yp[okp] if ops["pick"] is None else ops["pick"] @ yp[okp]
+        chosen = select(candidates, settings.selection, scale=float(np.std(pick_y)) if okp.any() else 1.0)
         elapsed = time.perf_counter() - start
         metrics = {
-            "train": table_metrics(y[ok], chosen.evaluate(X[ok])),
-            "pick": table_metrics(yp[okp], chosen.evaluate(Xp[okp])),
-            "validation": table_metrics(yv[okv], chosen.evaluate(Xv[okv])),
+            split: table_metrics(yy, chosen.evaluate(xx)) if ops[split] is None
+            else weak_metrics(yy, chosen.evaluate(xx), ops[split])
+            for split, xx, yy in (("train", X[ok], y[ok]), ("pick", Xp[okp], yp[okp]),
+                                  ("validation", Xv[okv], yv[okv]))
         }
         timings = {k: round(v, 3) for k, v in getattr(eng, "timings", {}).items()}
         timings["total"] = round(elapsed, 3)
@@ -218,9 +237,12 @@ def identify(
     body = None
     if body_frame:
         body = BodyModel(targets_done, primitive_info(), gravity)
-        targets_done = composed_targets(
-            body, targets, {"train": (X, Y), "pick": (Xp, Yp), "validation": (Xv, Yv)}
-        )
+        splits = {"train": (X, Y), "pick": (Xp, Yp), "validation": (Xv, Yv)}
+        roles_of = {"train": roles.fit, "pick": roles.pick, "validation": roles.validate}
+        operators = None
+        if weak is not None:  # rows with every target finite (the dataset's rows are)
+            operators = {k: weak_rows(roles_of[k].t, roles_of[k].flight, weak) for k in splits}
+        targets_done = composed_targets(body, targets, splits, operators)
         for name, t in targets_done.items():  # the threshold is on the composed targets, as reported
             r2v = t.metrics["validation"]["r2"]
             if not r2v >= r2_threshold:
@@ -264,6 +286,12 @@ def identify(
     }
     if gates:
         engine_info["sparse_pick_r2"] = gates
+    if weak is not None:
+        engine_info["weak_form"] = {
+            "test_function": "(1 - s^2)^p over t_j +- T, weights normalised to sum 1",
+            "half_window_s": weak.half_window_s, "stride_s": weak.stride_s, "power": int(weak.power),
+            "metrics": "every loss and R^2 on the weak rows (data and model integrated alike)",
+        }
     if body_frame:
         engine_info["learned_in"] = "body frame FRD: fx fy fz dwx dwy dwz; ax ay az = R f_b + g e_z"
     extra = {

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 LOSSES = ("absolute", "squared")
@@ -42,3 +44,12 @@ def loss(y: np.ndarray, y_hat: np.ndarray, kind: str = "absolute") -> float:
 def table_metrics(y: np.ndarray, y_hat: np.ndarray) -> dict[str, float]:
     """{rmse, mae, r2} of one target."""
     return {"rmse": rmse(y, y_hat), "mae": mae(y, y_hat), "r2": r2(y, y_hat)}
+
+
+def weak_metrics(y: np.ndarray, y_hat: np.ndarray, operator: Any = None) -> dict[str, float]:
+    """table_metrics of y_hat against y (N,), after a weak-form matrix V (M, N) on both when one is given
+    (rows where either is not finite are left out)."""
+    if operator is not None:
+        y, y_hat = operator @ np.asarray(y, float), operator @ np.asarray(y_hat, float)
+    ok = np.isfinite(y) & np.isfinite(y_hat)
+    return table_metrics(np.asarray(y)[ok], np.asarray(y_hat)[ok])

@@ -14,10 +14,11 @@ from typing import Any
 
 from bridge.errors import UserError
 from identification.equation_form import DISPLAY_LEGEND, equation_text
-from identification.metrics import table_metrics
+from identification.metrics import table_metrics, weak_metrics
 from identification.model_file import TARGET_INFO
 from identification.plausibility import Check
 from identification.table import TARGET_NAMES, Dataset
+from identification.weak_form import WeakSettings, weak_rows
 
 DIGITS = 3  # significant digits of the coefficients shown
 LOW_R2 = 0.5  # validation R^2 below this is flagged
@@ -27,12 +28,17 @@ def model_flags(model: Any, validation: Dataset) -> list[str]:
     """Flags of a fitted model on validation rows: low R^2 per target, and the engine's own notes/flags."""
     flags = []
     pred = model.predict(validation)
+    engine = getattr(getattr(model, "model_", None), "engine", {}) or {}
+    op = None
+    if "weak_form" in engine:  # learned in the weak form: judged there too (identification.weak_form)
+        w = engine["weak_form"]
+        op = weak_rows(validation.t, validation.flight,
+                       WeakSettings(float(w["half_window_s"]), float(w["stride_s"]), int(w["power"])))
     for i, name in enumerate(model.target_names):
         y = validation.targets[:, TARGET_NAMES.index(name)]
-        r2 = table_metrics(y, pred[:, i])["r2"]
+        r2 = (table_metrics(y, pred[:, i]) if op is None else weak_metrics(y, pred[:, i], op))["r2"]
         if not r2 >= LOW_R2:
             flags.append(f"{name}: validation R^2 {r2:.3f} < {LOW_R2} (the model explains little of it)")
-    engine = getattr(getattr(model, "model_", None), "engine", {}) or {}
     for key in ("flags", "notes"):
         for item in engine.get(key, []) or []:
             flags.append(str(item))

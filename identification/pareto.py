@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -21,14 +22,21 @@ from identification.metrics import loss as loss_fn
 from identification.model_file import ParetoPoint, expression_to_string
 
 
-def attach_holdout(candidates: Sequence[Candidate], X: np.ndarray, y: np.ndarray, loss: str) -> None:
-    """Set each candidate's held-out loss on (X (N,16), y (N,)); inf when its prediction is not finite."""
+def attach_holdout(
+    candidates: Sequence[Candidate], X: np.ndarray, y: np.ndarray, loss: str, operator: Any = None
+) -> None:
+    """Set each candidate's held-out loss on (X (N,16), y (N,)); inf when its prediction is not finite.
+
+    operator: a weak-form matrix V (M, N) (identification.weak_form): the loss is then on V y and V f(X).
+    """
+    weak_y = y if operator is None else operator @ y
     for c in candidates:
-        if len(y) == 0:
+        if len(weak_y) == 0:
             c.holdout_loss = float("nan")
             continue
         try:
-            c.holdout_loss = loss_fn(y, c.evaluate(X), loss)
+            pred = c.evaluate(X)
+            c.holdout_loss = loss_fn(weak_y, pred if operator is None else operator @ pred, loss)
         except (ValueError, TypeError, ZeroDivisionError, OverflowError):
             c.holdout_loss = float("inf")
 

@@ -11,7 +11,8 @@ Two sources:
   paper-train flight of the SITL against its exact dynamics: R^2 of dwx/dwy 0.99988/0.99981 with the plain
   5-point stencil, above 0.99999 kink-aware (3-point central: 0.9994; Savitzky-Golay 7-9 samples:
   0.9985-0.9997, smoothing spreads each kink). The first and last two samples of a contiguous run have
-  no value.
+  no value. Our .tlog uses exact step means instead where it can (identification.step_targets): with a
+  new command every step every sample is a kink and these stencils fall to low order.
 - sensors: specific force (accelerometer, FRD) rotated to NED with the attitude plus gravity (0, 0, g),
   and the gyro differentiated with a Savitzky-Golay filter; the specific force is smoothed likewise. No
   single window suits every axis: the yaw angular acceleration of the default vehicle is ~0.5 rad/s^2 RMS
@@ -24,7 +25,8 @@ Two sources:
   target (always dwz), fixed 0.036 s order-2 window -> per-axis choice: paper-train (32 s) 0.991 ->
   0.9956, paper-validate (10 s) 0.547 -> 0.990, closed-loop (40 s) 0.841 -> 0.965 (the other five targets
   >= 0.997); each choice within 0.001 of the best window found by trying them all against the truth.
-  The windows chosen are reported in the dataset's notes.
+  The windows chosen are reported in the dataset's notes. quadsr identify fits sensor targets in the weak
+  form by default (identification.weak_form), which needs these raw (RAW_SENSOR_TARGETS) instead.
 
 Also the attitude helpers the readers share: quaternion -> ZYX Euler, body-to-NED rotation matrices.
 """

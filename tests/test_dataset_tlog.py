@@ -53,10 +53,16 @@ def test_rows_columns_and_provenance(flights):
     ds = load_dataset(path)
     assert ds.format == "tlog" and ds.target_source == "truth" and ds.source == str(path)
     assert ds.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
-    # 750 steps + the time-0 step; 2 rows lost at each end to the differentiation stencil
+    # 750 steps + the time-0 step; held commands: point derivatives, 2 rows lost at each end to the stencil
     assert len(ds) == 751 - 4
     assert ds.dropped_rows == 4 and sum(ds.drop_reasons.values()) == 4
     assert np.allclose(np.diff(ds.t), 0.004)
+    assert any("commands held" in w for w in ds.warnings)
+    # paper-validate's sinusoids change every command every step: one row per step interval, at its midpoint
+    val = load_dataset(flights["val"])
+    steps = (val.t - 0.002) / 0.004
+    assert len(val) >= 500 - 1 and np.allclose(steps, np.round(steps))  # rows at the steps' midpoints
+    assert any("exact mean accelerations over each 4 ms step" in w for w in val.warnings)
     assert ds.xi.shape == (len(ds), len(STATE_NAMES)) and ds.u.shape == (len(ds), len(INPUT_NAMES))
     assert np.isfinite(ds.xi).all() and np.isfinite(ds.u).all() and np.isfinite(ds.targets).all()
     # Euler angles in rad within their ranges; rotor speeds in rad/s within the paper's 0..1000

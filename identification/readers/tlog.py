@@ -6,6 +6,12 @@ rotor, index 0..3 = motors 1..4, as bridge.messages sends them; ESC_STATUS where
 HIL_SENSOR. Only frames from the SITL's HIL component (the sender of HIL_SENSOR) are used; the time-0
 datagram the SITL repeats while waiting is counted once.
 
+Truth targets of a log with rotor speeds and the companion's commands whose commands change at most steps
+(a controller, sinusoids): one row per step interval [t_k, t_k+1] at its midpoint, the targets the exact
+mean accelerations over the step, the state and rotor speeds those of the midpoint under the held command
+(identification.step_targets). Held commands (paper-train), no commands or no visible motor lag: one row
+per step with kink-aware point derivatives.
+
 Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
 free-flight equations do not hold) are dropped, as are rows whose differentiation stencil would span a
 missing step or a resting row. Sensor targets also drop rows whose window holds a clamped IMU sample
@@ -25,6 +31,7 @@ from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT, RPM_TO_RAD_S, ObservationAs
 from bridge.rotations import euler_from_quaternions
 from bridge.tlog import read_tlog
 from identification.readers import RowFilter, make_dataset, rotor_model
+from identification.step_targets import motor_lag_ratio, step_interval_rows
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
@@ -35,6 +42,10 @@ from identification.targets import (
 
 STEP_S = 0.004
 KINK_THROTTLE = 0.02  # a command change above this (about 23 rad/s for the default vehicle) is a kink
+# step-mean truth targets when more than this fraction of steps change the command (a controller, sinusoids:
+# every sample a kink); below it (held commands, as paper-train) the point stencils are 4th order between
+# the few kinks, and beat the step means, whose regressors are second order in the body's turn over a step
+STEP_MEANS_ABOVE = 0.5
 _STATE_TYPES = {
     "HIL_STATE_QUATERNION",
     "LOCAL_POSITION_NED",
@@ -90,8 +101,13 @@ def read_tlog_dataset(
     rate_hz: float | None = None,
     gravity: float | None = None,
     sensor_settings: SensorTargetSettings | None = None,
+    step_intervals: bool = True,
 ) -> Dataset:
-    """Dataset of a quadsr .tlog: truth states, true rotor speeds, targets from truth or sensors."""
+    """Dataset of a quadsr .tlog: truth states, true rotor speeds, targets from truth or sensors.
+
+    Truth targets, when the log has rotor speeds and commands: one row per step interval at its midpoint
+    (identification.step_targets; step_intervals=False: per-sample kink-aware derivatives instead).
+    """
     decimation = 1
     if rate_hz is not None:
         factor = (1.0 / STEP_S) / rate_hz
@@ -187,6 +203,39 @@ def read_tlog_dataset(
     usable = ~(no_hsq | no_lpn | resting | ~np.isfinite(u).all(axis=1))
     idx = np.flatnonzero(usable)
     tgt = np.full((n, 6), np.nan)
+    extra = {"duplicate time-0 datagram (SITL waiting)": duplicates} if duplicates else {}
+    state_times = {int(m.time_usec) for m in msgs if m.get_type() == "HIL_STATE_QUATERNION"}
+    no_sensor = len(state_times - set(rows))
+    if no_sensor:
+        extra["step without HIL_SENSOR"] = no_sensor
+    throttles = _held_throttles(times, commands) if commands else None
+    if targets == "truth" and rotor is None and throttles is not None and step_intervals:
+        pairs = np.isfinite(throttles[:-1]).all(axis=1) & np.isfinite(throttles[1:]).all(axis=1)
+        steps_changed = np.any(np.diff(throttles, axis=0)[pairs] != 0.0, axis=1)
+        changing = float(np.mean(steps_changed)) if pairs.any() else 0.0
+        ratio = motor_lag_ratio(u, throttles, usable) if changing > STEP_MEANS_ABOVE else None
+        if changing <= STEP_MEANS_ABOVE:
+            notes.append(
+                f"truth targets: commands held ({100 * changing:.0f}% of steps change them): kink-aware "
+                "point derivatives, 4th order between the kinks"
+            )
+        if ratio is not None:
+            g_true = STANDARD_GRAVITY if gravity is None else float(gravity)
+            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true)
+            steps = RowFilter(n - 1)
+            for reason, bad in filt.reasons:
+                steps.drop(reason, bad[:-1] | bad[1:])
+            steps.drop("step interval over a missing step", np.diff(times) != round(STEP_S * 1e6))
+            if rate_hz is not None:
+                steps.drop(f"decimated to {rate_hz:g} Hz", (times[:-1] // 4000) % decimation != 0)
+            notes.append(
+                "truth targets: exact mean accelerations over each 4 ms step, rows at step midpoints "
+                f"(motor lag ratio {ratio:.6f} per step, Tm = {-STEP_S / np.log(ratio) * 1000:.2f} ms, "
+                "estimated from the log)"
+            )
+            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
+        elif changing > STEP_MEANS_ABOVE:
+            notes.append("truth targets: no motor lag seen in the log's speeds; kink-aware point derivatives")
     if targets == "truth":
         kinks = _command_kinks(times, commands)
         tgt[idx] = truth_targets(
@@ -209,11 +258,6 @@ def read_tlog_dataset(
         filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
 
     state = np.concatenate((pos, vel, euler, rates), axis=1)
-    extra = {"duplicate time-0 datagram (SITL waiting)": duplicates} if duplicates else {}
-    state_times = {int(m.time_usec) for m in msgs if m.get_type() == "HIL_STATE_QUATERNION"}
-    no_sensor = len(state_times - set(rows))
-    if no_sensor:
-        extra["step without HIL_SENSOR"] = no_sensor
     return make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra)
 
 
@@ -225,16 +269,23 @@ def _dilate(mask: np.ndarray, half: int) -> np.ndarray:
     return np.convolve(mask.astype(float), kernel, mode="same") > 0
 
 
+def _held_throttles(times: np.ndarray, commands: list[Any]) -> np.ndarray:
+    """Throttles (N,4) in [0, 1] held from each step (us) to the next: the reply to that step's HIL_SENSOR;
+    NaN where the log has no reply for the step."""
+    by_time = {int(c.time_usec): np.asarray(c.controls[:4], dtype=float) for c in commands}
+    out = np.full((len(times), 4), np.nan)
+    for i, tu in enumerate(times):
+        if int(tu) in by_time:
+            out[i] = by_time[int(tu)]
+    return out
+
+
 def _command_kinks(times: np.ndarray, commands: list[Any]) -> np.ndarray | None:
     """Steps (N,) where a motor command changed by more than KINK_THROTTLE: the accelerations' slope jumps
     there (the motor lag starts toward the new speed). None when the log holds no commands."""
     if not commands:
         return None
-    by_time = {int(c.time_usec): np.asarray(c.controls[:4], dtype=float) for c in commands}
-    cmd = np.full((len(times), 4), np.nan)
-    for i, tu in enumerate(times):
-        if int(tu) in by_time:
-            cmd[i] = by_time[int(tu)]
+    cmd = _held_throttles(times, commands)
     jump = np.abs(np.diff(cmd, axis=0)).max(axis=1)
     kinks = np.concatenate(([False], ~(jump <= KINK_THROTTLE)))  # unknown command: assume a kink
     return kinks

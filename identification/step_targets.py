@@ -1,0 +1,165 @@
+"""Truth targets that are exact under the SITL's zero-order hold: one row per step interval, not per sample.
+
+Within one exchange step [t_k, t_k+1] the command is held, so the motion is smooth there and every kink (the
+motor lag restarting toward a new command) sits on a sample. A difference over one step is then not an
+approximation of anything: (v_k+1 - v_k) / dt is exactly the mean acceleration over the interval (NED m/s^2),
+(w_k+1 - w_k) / dt the mean angular acceleration (FRD rad/s^2). Point derivatives at the samples cannot be
+had to that accuracy once every sample is a kink (a controller that changes every command every step): the
+stencils fall back to low order there (identification.targets.kink_aware_derivative).
+
+So each interval becomes one row, at its midpoint t_k + dt/2, whose regressors give that mean:
+- position: cubic Hermite midpoint (p_k + p_k+1)/2 + dt/8 (v_k - v_k+1) (m, NED); velocity and body rates: the
+  mean of the ends; attitude: the normalised mean of the two quaternions (same hemisphere);
+- rotor speeds: the RMS over the interval of the first-order lag u(s) = c + (u_k - c) r^(s/dt) that the
+  logged speeds follow under a held command c (c = (u_k+1 - r u_k) / (1 - r) per interval and rotor), so
+  every thrust and moment term (u^2) has its exact interval mean; the lag ratio r = exp(-dt / Tm) is
+  estimated from the log (motor_lag_ratio), not taken from a vehicle file.
+The .tlog reader uses these rows for flights whose commands change at most steps; for held commands
+(paper-train) point stencils are 4th order between the few kinks and stay (identification.readers.tlog).
+Measured on 9 s closed-loop flights from the ground (quadsr excite --profile closed-loop, ideal sensors),
+true model's lowest R^2 over the six targets: fang-chen-aero 0.99999410 (per-sample kink-aware stencils) ->
+0.99999995, fang-chen-buaa 0.99998764 -> 0.99999997 (bench/step_targets.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import sparse
+
+from bridge.rotations import euler_from_quaternions, rotation_matrix
+
+LAG_KNOTS = 64  # hat functions per rotor for the unknown throttle -> commanded-speed curve
+
+
+def motor_lag_ratio(
+    speeds: np.ndarray, throttles: np.ndarray, usable: np.ndarray
+) -> float | None:
+    """The motors' per-step lag ratio r = exp(-dt/Tm) from logged speeds (N,4) rad/s and held throttles (N,4).
+
+    Under a held command c_k, u_k+1 = r u_k + (1 - r) c(throttle_k) for each rotor, with c an unknown
+    monotone curve: r is the common coefficient of a least-squares fit with each rotor's curve written as
+    LAG_KNOTS piecewise-linear hat functions of its throttle (saturated throttles 0 and 1 left out; three
+    passes dropping residuals beyond 6 MADs). usable (N,): samples that may be used (both ends of a step).
+    None when there are too few steps or r falls outside (0, 1) (no first-order lag to see).
+    """
+    u = np.asarray(speeds, dtype=float)
+    thr = np.asarray(throttles, dtype=float)
+    ok = np.asarray(usable, dtype=bool)
+    finite = ok & np.isfinite(u).all(axis=1)
+    pair = finite[:-1] & finite[1:] & np.isfinite(thr[:-1]).all(axis=1)
+    cols, ys, rows_i, cols_j, vals = 1 + 4 * LAG_KNOTS, [], [], [], []
+    row0 = 0
+    for i in range(4):
+        s = thr[:-1, i]
+        k = np.flatnonzero(pair & (s > 1e-6) & (s < 1.0 - 1e-6))
+        if len(k) < 4 * LAG_KNOTS:
+            continue
+        lo, hi = float(s[k].min()), float(s[k].max())
+        x = (s[k] - lo) / max(hi - lo, 1e-12) * (LAG_KNOTS - 1)
+        j = np.minimum(np.floor(x).astype(int), LAG_KNOTS - 2)
+        w = x - j
+        rows = row0 + np.arange(len(k))
+        rows_i += [rows, rows, rows]
+        cols_j += [np.zeros(len(k), int), 1 + i * LAG_KNOTS + j, 2 + i * LAG_KNOTS + j]
+        vals += [u[k, i], 1.0 - w, w]
+        ys.append(u[k + 1, i])
+        row0 += len(k)
+    if not ys:
+        return None
+    a = sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows_i), np.concatenate(cols_j))), shape=(row0, cols)
+    )
+    y = np.concatenate(ys)
+    scale = 1.0 / max(float(np.abs(y).mean()), 1e-12)  # the speed column to the hat functions' size
+    a = a @ sparse.diags(np.r_[scale, np.ones(cols - 1)])
+    keep = np.ones(len(y), dtype=bool)
+    r = float("nan")
+    for _ in range(3):  # normal equations (cols x cols, sparse rows): fast at any flight length
+        ak = a[keep]
+        try:
+            sol, *_ = np.linalg.lstsq((ak.T @ ak).toarray(), ak.T @ y[keep], rcond=None)
+        except np.linalg.LinAlgError:
+            return None
+        r = float(sol[0]) * scale
+        res = y - a @ sol
+        mad = 1.4826 * float(np.median(np.abs(res[keep])))
+        keep = np.abs(res) <= 6.0 * mad + 1e-9
+    return r if 0.0 < r < 1.0 else None
+
+
+def lagged_rms_speed(u_start: np.ndarray, u_end: np.ndarray, ratio: float) -> np.ndarray:
+    """RMS rotor speed (rad/s) over a step whose speed goes u_start -> u_end along a first-order lag.
+
+    u(s) = c + d r^(s/dt), d = u_start - c, c = (u_end - r u_start) / (1 - r); the mean of u^2 over the step
+    is c^2 + 2 c d m1 + d^2 m2 with m1 = (1 - r) / x, m2 = (1 - r^2) / (2 x), x = -ln r.
+    """
+    r = float(ratio)
+    x = -np.log(r)
+    c = (u_end - r * u_start) / (1.0 - r)
+    d = u_start - c
+    mean_sq = c * c + 2.0 * c * d * (1.0 - r) / x + d * d * (1.0 - r * r) / (2.0 * x)
+    return np.sqrt(np.maximum(mean_sq, 0.0))
+
+
+def step_interval_rows(
+    t: np.ndarray,
+    position: np.ndarray,
+    velocity: np.ndarray,
+    quaternion: np.ndarray,
+    rates: np.ndarray,
+    speeds: np.ndarray,
+    ratio: float,
+    gravity: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rows of the N-1 intervals between samples: (t_mid s, xi (N-1,12), u (N-1,4), targets (N-1,6)).
+
+    Inputs per sample: t (s), position NED (m), velocity NED (m/s), quaternion (w, x, y, z) body FRD -> NED,
+    body rates FRD (rad/s), rotor speeds (rad/s); ratio the motors' lag ratio per interval (motor_lag_ratio).
+    Targets: ax ay az (NED m/s^2) and dwx dwy dwz (FRD rad/s^2), the exact means over each interval; with
+    gravity (m/s^2) ax ay az are taken to the midpoint attitude (_midpoint_acceleration). The caller keeps
+    only intervals of one step whose two ends are usable.
+    """
+    t = np.asarray(t, dtype=float)
+    dt = np.diff(t)[:, None]
+    p, v, w, u = (np.asarray(a, dtype=float) for a in (position, velocity, rates, speeds))
+    q = np.asarray(quaternion, dtype=float)
+    qa, qb = q[:-1], q[1:]
+    qb = qb * np.where((qa * qb).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
+    qm = qa + qb
+    qm /= np.linalg.norm(qm, axis=1)[:, None]
+    xi = np.concatenate(
+        (
+            0.5 * (p[:-1] + p[1:]) + dt / 8.0 * (v[:-1] - v[1:]),
+            0.5 * (v[:-1] + v[1:]),
+            euler_from_quaternions(qm),
+            0.5 * (w[:-1] + w[1:]),
+        ),
+        axis=1,
+    )
+    a_mean = (v[1:] - v[:-1]) / dt
+    a_mid = a_mean
+    if gravity is not None:
+        a_mid = _midpoint_acceleration(a_mean, xi[:, 6:9], xi[:, 9:12], dt[:, 0], gravity)
+    targets = np.concatenate((a_mid, (w[1:] - w[:-1]) / dt), axis=1)
+    u_mid = lagged_rms_speed(u[:-1], u[1:], ratio)
+    return 0.5 * (t[:-1] + t[1:]), xi, u_mid, targets
+
+
+def _midpoint_acceleration(
+    a_mean: np.ndarray, euler: np.ndarray, rates: np.ndarray, dt: np.ndarray, gravity: float
+) -> np.ndarray:
+    """NED acceleration (M,3) m/s^2 at the step's midpoint attitude from its mean over the step.
+
+    The body turns during a step: with the specific force f_b held and the rates w (FRD rad/s) constant,
+    the mean of R(t) f_b is R_mid (I + [w]x^2 dt^2/24) f_b, not R_mid f_b (6.7e-4 of the thrust at 30 rad/s,
+    which the engines would fit with spurious |w| terms). So f_b = (I + [w]x^2 dt^2/24)^-1 R_mid^T (a - g e3).
+    """
+    r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
+    g = np.array([0.0, 0.0, gravity])
+    body = np.einsum("nji,nj->ni", r, a_mean - g)
+    p, q, s = rates[:, 0], rates[:, 1], rates[:, 2]
+    z = np.zeros_like(p)
+    k = np.stack((np.stack((z, -s, q), 1), np.stack((s, z, -p), 1), np.stack((-q, p, z), 1)), 1)
+    m = np.eye(3)[None] + (k @ k) * (dt**2 / 24.0)[:, None, None]
+    body = np.linalg.solve(m, body[:, :, None])[:, :, 0]
+    return np.einsum("nij,nj->ni", r, body) + g
