@@ -47,7 +47,7 @@ from quadsr.sitl_process import SitlProcess  # noqa: E402
 STARTED = re.compile(r"started PX4 \(pid (\d+)\) and the SITL \(pid (\d+)\)")
 WINDOW = re.compile(r"excitation from ([\d.]+) to ([\d.]+) s of PX4's clock")
 R2_ROW = re.compile(r"\| \S+ \((\w+)\) \|.*\| ([-\d.e+]+|nan) \|$")
-HOLD = 'name: hold-2.5m\nduration: 60\nexpressions: {x: "0", y: "0", z: "-2.5", yaw: "0"}\n'
+HOLD = 'name: hold-2.5m\nduration: 60\nexpressions: {x: "0", y: "0", z: "-2.5*(1 - exp(-t/1.5))", yaw: "0"}\n'
 
 QUADSR = [sys.executable, "-m", "quadsr.cli"]
 

@@ -19,7 +19,8 @@ Topics (instance 0; times from timestamp_sample where the topic has it, else tim
 - targets 'truth': the estimator's own accelerations: vehicle_local_position ax ay az and
   vehicle_angular_velocity xyz_derivative. 'sensors': sensor_combined accelerometer (FRD specific force)
   rotated with the attitude plus g, and its gyro differentiated (Savitzky-Golay, identification.targets),
-  computed at the sensor rate and then resampled.
+  computed at the sensor rate and then resampled; each sample is placed at the middle of the interval PX4
+  integrated it over (timestamp - gyro_integral_dt / 2).
 """
 
 from __future__ import annotations
@@ -473,6 +474,10 @@ def _sensor_target_stream(
     """Sensor-derived targets at sensor_combined's times (rotated specific force + g, gyro derivative)."""
     sc = topics.get("sensor_combined", "the 'sensors' targets (accelerometer and gyro)")
     ts = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
+    if "gyro_integral_dt" in sc:  # each sample is the mean over the integration interval ending at timestamp
+        ts = ts - 0.5e-6 * sc["gyro_integral_dt"].astype(float)
+        if np.any(np.diff(ts) <= 0):  # a jittering interval must not reorder the samples
+            ts = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
     gyro = _Topics.columns(sc, [f"gyro_rad[{i}]" for i in range(3)], "sensor_combined", topics.path)
     acc = _Topics.columns(sc, [f"accelerometer_m_s2[{i}]" for i in range(3)], "sensor_combined", topics.path)
     q, ok = s_att.resample(ts)
