@@ -11,9 +11,11 @@ import re
 import subprocess
 import sys
 
+import yaml
 from px4_run import PX4_DIR, REPO, QuadsrPx4
 from pyulog import ULog
 
+from bridge.vehicle import load_vehicle
 from quadsr.px4_launch import Px4Ports, free_instance
 
 WINDOW = re.compile(r"excitation from ([\d.]+) to ([\d.]+) s of PX4's clock")
@@ -60,8 +62,16 @@ def test_excitation_through_px4_offboard_is_identified_from_px4s_ulog(tmp_path):
     assert "motor commands from actuator_motors" in out, out
     r2 = {m.group(1): float(m.group(2)) for m in map(R2_ROW.match, out.splitlines()) if m}
     assert set(r2) == {"ax", "dwx"}, out
-    # sanity floors on the held-out end of the excitation (bench/px4_loop.py: the full figures)
-    assert r2["ax"] >= 0.99 and r2["dwx"] >= 0.8, r2
+    # sanity floors (bench/px4_loop.py: R^2 of all six on a second flight): x'' on the held-out end of the
+    # excitation, and the roll control term of wx' learned from PX4's motor commands within 10% of the
+    # vehicle's (the held-out second of a 12 s flight can be one where the excitation faded near a limit)
+    assert r2["ax"] >= 0.99, r2
+    dwx = yaml.safe_load((tmp_path / "model.yaml").read_text())["targets"]["dwx"]["expression"]
+    m = re.search(r"([-\d.e]+)\*\(u2\*\*2 \+ u3\*\*2 - u1\*\*2 - u4\*\*2\)", dwx)
+    assert m, dwx
+    v = load_vehicle("fang-chen-buaa")
+    expected = v.mixer_gain / v.inertia[0][0]  # (rad/s^2) per (rad/s)^2 of f2
+    assert abs(float(m.group(1)) / expected - 1.0) < 0.10, (dwx, expected)
 
 
 def test_an_open_loop_profile_through_px4_is_a_user_error(tmp_path):
