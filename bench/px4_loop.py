@@ -1,15 +1,24 @@
-"""Real PX4 in the loop with quadsr's SITL: speed, hover hold, and Case I / II through PX4 OFFBOARD.
+"""Real PX4 in the loop with quadsr's SITL: speed, hover hold and Case I / II through PX4 OFFBOARD beside
+quadsr's own companion, and identification from PX4-flown excitation flights.
 
 1. `quadsr px4` (lockstep, ideal sensors): real-time factor (PX4's simulated ms per wall second) on the ground
-   and during a take-off and hover; the hover hold over 10 s of simulated time from quadsr's truth log.
-2. Case I and Case II flown by `quadsr fly --autopilot` through PX4 OFFBOARD (`quadsr px4 --mode realtime`,
-   a fresh PX4 per case), beside quadsr's own companion flying the same case directly on a `quadsr sitl`
-   (ideal sensors, true state): RMS of the 3-D error after 5 s from quadsr's truth.
-3. Identification from PX4-flown flights: the model learned from Case I's truth .tlog, validated on Case II's.
+   and during a take-off and hover (PX4's own take-off), the CPU time of each process (the SITL, PX4, this
+   ground station) per simulated second in that hover, the machine's load; the hover hold over 10 s of
+   simulated time from quadsr's truth log.
+2. One table: a 2.5 m hover hold, Case I and Case II flown by `quadsr fly --autopilot` through PX4 OFFBOARD
+   (`quadsr px4 --mode realtime`, a fresh PX4 per flight; the hover from PX4's own take-off to 2.5 m: a climb
+   from the ground in OFFBOARD leaves PX4's height estimate 10-30 cm above the truth for many seconds), beside
+   quadsr's own companion flying the same trajectory directly on a `quadsr sitl` (ideal sensors, true state,
+   from the ground): RMS of the 3-D error after 5 s, truth.
+3. Identification from PX4-flown flights: two `quadsr excite --autopilot --profile px4-offboard` flights
+   (seeds 1 and 2, a fresh PX4 each); a model identified (sparse engine) from the first flight's PX4 ULog
+   (targets from its IMU, `--targets-from sensors`) and one from its truth .tlog, each validated on the
+   second flight's log of the same kind, in the excitation's window: R^2 per target.
 
-Prints the figures, then PASS/FAIL lines: real-time factor in flight >= 5; RMS after 5 s <= 5 cm for each case
-through PX4; R^2 >= 0.95 per target on the second flight.
-Usage: python bench/px4_loop.py [--px4 DIR] [--duration 20] [--out DIR]
+Prints the figures, then PASS/FAIL lines: real-time factor in hover >= 5; RMS after 5 s <= 5 cm for each
+flight through PX4; R^2 >= 0.99 on every target of the second flight, for the truth .tlog and for the ULog
+(issue 14's floor).
+Usage: python bench/px4_loop.py [--px4 DIR] [--duration 20] [--out DIR] [--skip-tracking]
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import os
 import re
 import subprocess
 import sys
@@ -35,6 +45,11 @@ from identification.true_model import write_true_model  # noqa: E402
 from quadsr.child_process import OutputProcess  # noqa: E402
 from quadsr.px4_launch import Px4Ports, free_instance  # noqa: E402
 from quadsr.sitl_process import SitlProcess  # noqa: E402
+
+STARTED = re.compile(r"started PX4 \(pid (\d+)\) and the SITL \(pid (\d+)\)")
+WINDOW = re.compile(r"excitation from ([\d.]+) to ([\d.]+) s of PX4's clock")
+R2_ROW = re.compile(r"\| \S+ \((\w+)\) \|.*\| ([-\d.e+]+|nan) \|$")
+HOLD = 'name: hold-2.5m\nduration: 60\nexpressions: {x: "0", y: "0", z: "-2.5", yaw: "0"}\n'
 
 QUADSR = [sys.executable, "-m", "quadsr.cli"]
 
@@ -59,27 +74,50 @@ def sim_rate(link: OffboardLink, wall_s: float) -> float:
     return (link.state.time_boot_ms - start_ms) * 1e-3 / (time.monotonic() - start)
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time (s) a process has used so far (Linux /proc), nan if it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return math.nan
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def take_off(gcs: OffboardLink) -> None:
+    """Arm, PX4's own take-off to MIS_TAKEOFF_ALT (2.5 m), then 8 s of its clock to settle."""
+    assert gcs.arm() == mavlink.MAV_RESULT_ACCEPTED
+    nan = math.nan
+    assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, (nan, 0, 0, nan, nan, nan, nan)) == \
+        mavlink.MAV_RESULT_ACCEPTED
+    while gcs.state.position is None or gcs.state.position[2] > -2.4:
+        gcs.poll(0.1)
+    settle = gcs.state.time_boot_ms + 8000
+    while gcs.state.time_boot_ms < settle:
+        gcs.poll(0.05)
+
+
 def hover(px4: Path, out: Path) -> dict[str, float]:
-    """Lockstep PX4: real-time factors, take-off to 2.5 m and the truth's hover hold over 10 s."""
+    """Lockstep PX4: real-time factors, CPU per simulated second, take-off to 2.5 m and the truth's hover hold
+    over 10 s."""
     work = out / "hover"
     run, n = start_px4(px4, work, "lockstep")
+    pids = {"PX4": int(STARTED.search(run.output).group(1)), "SITL": int(STARTED.search(run.output).group(2)),
+            "ground station (this)": os.getpid()}
     try:
         gcs = OffboardLink(f"udp:127.0.0.1:{Px4Ports(n).gcs}")
         gcs.connect(30.0)
         ground_rtf = sim_rate(gcs, 3.0)
-        assert gcs.arm() == mavlink.MAV_RESULT_ACCEPTED
-        nan = math.nan
-        assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, (nan, 0, 0, nan, nan, nan, nan)) == \
-            mavlink.MAV_RESULT_ACCEPTED
-        while gcs.state.position is None or gcs.state.position[2] > -2.4:
-            gcs.poll(0.1)
-        settle = gcs.state.time_boot_ms + 8000
-        while gcs.state.time_boot_ms < settle:
-            gcs.poll(0.05)
+        take_off(gcs)
         start_ms, wall = gcs.state.time_boot_ms, time.monotonic()
+        cpu0 = {k: cpu_seconds(p) for k, p in pids.items()}
+        load0 = os.getloadavg()[0]
         while gcs.state.time_boot_ms < start_ms + 10000:
             gcs.poll(0.05)
-        flight_rtf = (gcs.state.time_boot_ms - start_ms) * 1e-3 / (time.monotonic() - wall)
+        sim_s = (gcs.state.time_boot_ms - start_ms) * 1e-3
+        flight_rtf = sim_s / (time.monotonic() - wall)
+        cpu = {k: (cpu_seconds(p) - cpu0[k]) / sim_s for k, p in pids.items()}
+        load = 0.5 * (load0 + os.getloadavg()[0])
         gcs.close()
     finally:
         run.stop()
@@ -88,7 +126,8 @@ def hover(px4: Path, out: Path) -> dict[str, float]:
     mean = [sum(p[i] for p in pts) / len(pts) for i in range(3)]
     rms = math.sqrt(sum(math.dist(p, mean) ** 2 for p in pts) / len(pts))
     return {"rtf_ground": ground_rtf, "rtf_hover": flight_rtf, "hover_rms_m": rms,
-            "hover_max_m": max(math.dist(p, mean) for p in pts), "hover_z_m": mean[2]}
+            "hover_max_m": max(math.dist(p, mean) for p in pts), "hover_z_m": mean[2], "cpu": cpu,
+            "load": load}
 
 
 def rms_after_5s(steps: Path) -> float:
@@ -99,11 +138,18 @@ def rms_after_5s(steps: Path) -> float:
     return math.sqrt(sum(e * e for e in err) / len(err))
 
 
-def through_px4(px4: Path, out: Path, model: Path, case: str, duration: float) -> float:
-    """Case flown through PX4 OFFBOARD (real-time pacing): RMS after 5 s (truth)."""
-    work = out / f"px4-{case}"
+def through_px4(px4: Path, out: Path, model: Path, case: str, duration: float,
+                airborne: bool = False) -> float:
+    """A trajectory (case1, case2 or a file) flown through PX4 OFFBOARD (real-time pacing), from the ground or
+    (airborne) from PX4's own take-off: RMS after 5 s (truth)."""
+    work = out / f"px4-{Path(case).stem}"
     run, n = start_px4(px4, work, "realtime")
     try:
+        if airborne:
+            gcs = OffboardLink(f"udp:127.0.0.1:{Px4Ports(n).gcs}")
+            gcs.connect(30.0)
+            take_off(gcs)
+            gcs.close()
         done = subprocess.run([*QUADSR, "fly", "--model", str(model), "--trajectory", case, "--duration",
                                str(duration), "--autopilot", f"udp:127.0.0.1:{Px4Ports(n).offboard}",
                                "--truth", str(work / "truth.tlog"), "--out", str(work / "flight"),
@@ -117,32 +163,52 @@ def through_px4(px4: Path, out: Path, model: Path, case: str, duration: float) -
 
 
 def own_companion(out: Path, model: Path, case: str, duration: float) -> float:
-    """Case flown by quadsr's own companion on the HIL link (ideal sensors, true state): RMS after 5 s."""
+    """The same trajectory flown by quadsr's own companion on the HIL link (ideal sensors, true state): RMS
+    after 5 s."""
     with SitlProcess(["--sensors", "ideal"]) as sitl:
         done = subprocess.run([*QUADSR, "fly", "--model", str(model), "--trajectory", case, "--duration",
-                               str(duration), "--hil", sitl.hil, "--out", str(out / f"own-{case}"),
+                               str(duration), "--hil", sitl.hil, "--out", str(out / f"own-{Path(case).stem}"),
                                "--no-progress"], cwd=REPO, capture_output=True, text=True)
     if done.returncode != 0:
         print(done.stdout[-2000:], done.stderr[-2000:])
         return math.inf
-    return rms_after_5s(out / f"own-{case}" / "steps.csv")
+    return rms_after_5s(out / f"own-{Path(case).stem}" / "steps.csv")
 
 
-def identify_and_validate(out: Path) -> dict[str, float]:
-    """Identify (sparse engine) from the Case I flight PX4 flew (quadsr's truth .tlog), validate on Case II's:
-    R^2 per target."""
-    train, test = out / "px4-case1" / "truth.tlog", out / "px4-case2" / "truth.tlog"
-    model = out / "px4-learned.yaml"
-    subprocess.run([*QUADSR, "identify", str(train), "-o", str(model), "--engine", "sparse", "--no-progress"],
-                   cwd=REPO, capture_output=True, text=True, check=True)
-    done = subprocess.run([*QUADSR, "validate", str(model), str(test), "--out", str(out / "px4-validation")],
+def excite_through_px4(px4: Path, out: Path, seed: int) -> dict[str, object]:
+    """A px4-offboard excitation through PX4 OFFBOARD on a fresh PX4: its ULog, truth .tlog and windows."""
+    work = out / f"px4-excite-{seed}"
+    run, n = start_px4(px4, work, "realtime")
+    try:
+        done = subprocess.run([*QUADSR, "excite", "--autopilot", f"udp:127.0.0.1:{Px4Ports(n).offboard}",
+                               "--profile", "px4-offboard", "--seed", str(seed), "--out",
+                               str(work / "offboard.tlog")], cwd=REPO, capture_output=True, text=True)
+    finally:
+        run.stop()
+    m = WINDOW.search(done.stdout)
+    if done.returncode != 0 or m is None:
+        raise SystemExit(f"the excitation through PX4 failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
+    from pyulog import ULog
+
+    ulog = sorted((work / "rootfs" / "log").rglob("*.ulg"))[-1]
+    start, end = float(m.group(1)), float(m.group(2))
+    log_start = ULog(str(ulog), ["vehicle_status"]).start_timestamp * 1e-6  # PX4's clock at the ULog's t = 0
+    return {"ulog": ulog, "truth": work / "truth.tlog", "truth_window": f"{start:.3f}:{end:.3f}",
+            "ulog_window": f"{start - log_start:.3f}:{end - log_start:.3f}", "summary": done.stdout}
+
+
+def identify_and_validate(out: Path, train: dict, test: dict, kind: str) -> dict[str, float]:
+    """Identify (sparse engine) from the first excitation's log of `kind` (ulog or truth), validate on the
+    second's in its excitation window: R^2 per target."""
+    model = out / f"px4-{kind}-model.yaml"
+    extra = ["--motor-curve", "fang-chen-buaa", "--targets-from", "sensors"] if kind == "ulog" else []
+    subprocess.run([*QUADSR, "identify", str(train[kind]), "--window", train[f"{kind}_window"], "-o",
+                    str(model), "--engine", "sparse", "--no-progress", *extra], cwd=REPO, capture_output=True,
+                   text=True, check=True)
+    done = subprocess.run([*QUADSR, "validate", str(model), str(test[kind]), "--window",
+                           test[f"{kind}_window"], "--out", str(out / f"px4-{kind}-validation"), *extra],
                           cwd=REPO, capture_output=True, text=True, check=True)
-    r2 = {}
-    for line in done.stdout.splitlines():
-        m = re.match(r"\| \S+ \((\w+)\) \|.*\| ([-\d.e+]+|nan) \|$", line)
-        if m:
-            r2[m.group(1)] = float(m.group(2))
-    return r2
+    return {m.group(1): float(m.group(2)) for m in map(R2_ROW.match, done.stdout.splitlines()) if m}
 
 
 def main() -> int:
@@ -151,6 +217,7 @@ def main() -> int:
     p.add_argument("--px4", type=Path, default=REPO.parent / "shared" / "px4")
     p.add_argument("--duration", type=float, default=20.0, help="tracking flight length, s")
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--skip-tracking", action="store_true", help="no hover/Case I/II table")
     args = p.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="px4_loop-"))
     model = out / "true-model.yaml"
@@ -158,23 +225,35 @@ def main() -> int:
     write_true_model(load_vehicle("fang-chen-buaa"), model)
     h = hover(args.px4, out)
     print(f"PX4 lockstep: real-time factor {h['rtf_ground']:.1f} on the ground, {h['rtf_hover']:.1f} in hover"
-          "; "
-          f"hover at z = {h['hover_z_m']:.3f} m (truth): RMS {h['hover_rms_m'] * 1000:.1f} mm, max "
+          f" (load average {h['load']:.1f} on {os.cpu_count()} cores); CPU s per simulated s in hover: "
+          + ", ".join(f"{k} {v:.3f}" for k, v in h["cpu"].items())
+          + f"; hover at z = {h['hover_z_m']:.3f} m (truth): RMS {h['hover_rms_m'] * 1000:.1f} mm, max "
           f"{h['hover_max_m'] * 1000:.1f} mm over 10 s simulated", flush=True)
     rows = []
-    for case in ("case1", "case2"):
-        rows.append((case, through_px4(args.px4, out, model, case, args.duration),
-                     own_companion(out, model, case, args.duration)))
-        print(f"{case}: RMS after 5 s through PX4 OFFBOARD {rows[-1][1] * 1000:.1f} mm, quadsr's own "
-              f"companion {rows[-1][2] * 1000:.4f} mm", flush=True)
-    r2 = identify_and_validate(out)
-    print("identified from the Case I flight through PX4 (truth .tlog), validated on Case II's: R^2 "
-          + ", ".join(f"{k} {v:.4f}" for k, v in r2.items()), flush=True)
+    if not args.skip_tracking:
+        hold = out / "hold-2.5m.yaml"
+        hold.write_text(HOLD)
+        print(f"| flight ({args.duration:g} s, ideal sensors, truth) | RMS after 5 s through PX4 OFFBOARD "
+              "[mm] | quadsr's own companion [mm] |\n|---|---|---|", flush=True)
+        for name, case in (("hover 2.5 m (PX4: from its take-off)", str(hold)), ("Case I", "case1"),
+                           ("Case II", "case2")):
+            rows.append((name, through_px4(args.px4, out, model, case, args.duration, case == str(hold)),
+                         own_companion(out, model, case, args.duration)))
+            print(f"| {name} | {rows[-1][1] * 1000:.1f} | {rows[-1][2] * 1000:.4f} |", flush=True)
+    train, test = excite_through_px4(args.px4, out, 1), excite_through_px4(args.px4, out, 2)
+    for f in (train, test):
+        print(f"excitation through PX4: {f['summary'].splitlines()[1]}; ULog window {f['ulog_window']} s",
+              flush=True)
+    r2 = {kind: identify_and_validate(out, train, test, kind) for kind in ("truth", "ulog")}
+    for kind, label in (("truth", "quadsr's truth .tlog"), ("ulog", "PX4's ULog (targets from its IMU)")):
+        print(f"identified from the first excitation through PX4 ({label}), validated on the second: R^2 "
+              + ", ".join(f"{k} {v:.4f}" for k, v in r2[kind].items()), flush=True)
     checks = [(h["rtf_hover"] >= 5.0, f"real-time factor in hover {h['rtf_hover']:.1f} >= 5")]
-    checks.append((len(r2) == 6 and min(r2.values()) >= 0.95,
-                   "R^2 >= 0.95 on every target of the second flight"))
-    checks += [(px4 <= 0.05, f"{case} through PX4 OFFBOARD: RMS after 5 s {px4 * 1000:.1f} mm <= 50 mm")
-               for case, px4, _ in rows]
+    for kind in ("truth", "ulog"):
+        checks.append((len(r2[kind]) == 6 and min(r2[kind].values()) >= 0.99,
+                       f"R^2 >= 0.99 on every target of the second flight ({kind})"))
+    checks += [(px4 <= 0.05, f"{name} through PX4 OFFBOARD: RMS after 5 s {px4 * 1000:.1f} mm <= 50 mm")
+               for name, px4, _ in rows]
     for ok, text in checks:
         print(f"{'PASS' if ok else 'FAIL'} {text}")
     print(f"outputs in {out}")

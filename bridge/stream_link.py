@@ -113,7 +113,7 @@ class TcpLink:
             self._notify(f"refused a second connection from {addr[0]}:{addr[1]}")
             return
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        conn.settimeout(SEND_TIMEOUT_S)
+        conn.setblocking(False)  # no poll before each send and recv (a timeout socket polls first)
         self._conn = conn
         self._conn_peer = addr[:2]
         self._pending = b""
@@ -156,7 +156,7 @@ class TcpLink:
             self.stats.no_peer += 1
             return False
         try:
-            conn.sendall(data)
+            _send_all(conn, data)
         except TimeoutError:
             self.stats.send_errors += 1
             self._drop(f"the peer took no data for {SEND_TIMEOUT_S:g} s")
@@ -251,6 +251,29 @@ class TcpLink:
         return f"TcpLink(local={self.local}, peer={self._conn_peer})"
 
 
+def _send_all(conn: socket.socket, data: bytes) -> None:
+    """Write all of data to a non-blocking connection: one send() when the kernel takes it at once (the usual
+    case, with no poll before it as sendall on a socket with a timeout makes), else waiting for room up to
+    SEND_TIMEOUT_S wall s (then TimeoutError)."""
+    try:
+        sent = conn.send(data)
+    except BlockingIOError:
+        sent = 0
+    if sent == len(data):
+        return
+    view = memoryview(data)[sent:]
+    deadline = time.monotonic() + SEND_TIMEOUT_S
+    while view:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0.0:
+            raise TimeoutError
+        select.select([], [conn], [], remaining)
+        try:
+            view = view[conn.send(view):]
+        except BlockingIOError:
+            pass
+
+
 class TcpClientLink(TcpLink):
     """A TCP MAVLink 2 link that connects to a listening peer (ArduPilot SITL's SERIAL0, tcp:HOST:5760+10N),
     with the calls of bridge.link.UdpLink a client uses (send, recv, drain, stats, close). Connection refused
@@ -287,6 +310,7 @@ class TcpClientLink(TcpLink):
                 raise UserError(f"cannot connect to tcp:{remote.host}:{remote.port}: {exc.strerror or exc}",
                                 hint="give the autopilot's address as tcp:HOST:PORT") from None
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.setblocking(False)
         self._conn = conn
         self._conn_peer = self.peer = conn.getpeername()[:2]
         self.local = Endpoint(*conn.getsockname()[:2], "tcp")

@@ -25,8 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bridge.messages import mavlink
 from bridge.offboard import PX4, AutopilotFlavour, OffboardLink
+from bridge.offboard_flight import OffboardWatch, await_estimate, start_px4_offboard
+from bridge.offboard_flight import result_name as _result_name  # noqa: F401  (guided_companion's)
+from bridge.offboard_flight import said as _said  # noqa: F401
 from bridge.px4_thrust import fit_thrust_model, normalised_thrust
 from bridge.rotations import euler_from_quaternion, quaternion_from_euler
 from bridge.tlog import read_tlog
@@ -42,7 +44,6 @@ from controller.companion import (
 )
 from controller.plugin import Controller, Trajectory, VehicleState
 
-OFFBOARD_LOSS_MS = 1000  # PX4's COM_OF_LOSS_T default (1 s): setpoints older than this trip its failsafe
 TRUTH_COLUMNS = ("true_x", "true_y", "true_z", "true_vx", "true_vy", "true_vz", "true_phi", "true_theta",
                  "true_psi")
 
@@ -113,43 +114,13 @@ class OffboardCompanion(Companion):
         """Connect, ask for the attitude and local position at rate_hz and wait for both: '' or why not
         (`not_running` follows the connect timeout's message; `no_estimate()` says why none came)."""
         s = self.offboard
-        try:
-            link.connect(s.connect_timeout)
-        except TimeoutError as exc:
-            return f"{exc}: {not_running}"
-        for msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
-            link.request_rate(msg_id, s.rate_hz)
-        deadline = time.monotonic() + s.connect_timeout
-        while link.state.position is None or link.state.quaternion is None:
-            if time.monotonic() > deadline:
-                return no_estimate()
-            link.poll(0.1)
-        return ""
+        return await_estimate(link, s.connect_timeout, s.rate_hz, not_running, no_estimate)
 
     def _start(self, link: OffboardLink) -> str:
         """Connect, request the estimate, pre-stream, OFFBOARD, arm: '' when flying, else why not."""
         s = self.offboard
-        why = self._await_estimate(
-            link, "is PX4 running (quadsr px4)? its offboard port is 14580+N",
-            lambda: f"PX4 at {s.autopilot} sent no position and attitude within {s.connect_timeout:g} s")
-        if why:
-            return why
-        st = link.state
-        yaw = float(euler_from_quaternion(st.quaternion)[2])
-        level = quaternion_from_euler(0.0, 0.0, yaw)
-        start_ms = st.time_boot_ms
-        while st.time_boot_ms - start_ms < s.prestream_s * 1000.0:
-            link.attitude_target(level, 0.0)
-            if not link.poll(0.05) and time.monotonic() - st.last_heard > s.link_timeout:
-                return f"PX4 went silent for {s.link_timeout:g} s while setpoints were streamed"
-        result = link.set_mode(PX4.offboard)
-        if result != mavlink.MAV_RESULT_ACCEPTED:
-            return f"PX4 rejected the switch to OFFBOARD ({_result_name(result)}){_said(link)}"
-        result = link.arm()
-        if result != mavlink.MAV_RESULT_ACCEPTED:
-            link.set_mode(PX4.hold)
-            return f"PX4 refused to arm ({_result_name(result)}){_said(link)}"
-        return ""
+        return start_px4_offboard(link, s.autopilot, s.rate_hz, s.prestream_s, s.connect_timeout,
+                                  s.link_timeout)
 
     def _loop(self, link: OffboardLink, log: StepLog) -> tuple[int, bool, bool, str]:
         """The flight: one setpoint per new attitude message; (t0 ms, completed, crashed, message)."""
@@ -158,25 +129,11 @@ class OffboardCompanion(Companion):
         t0_ms = st.attitude_ms
         self.controller.reset()
         last_ms = -1
-        in_offboard = False
+        watch = OffboardWatch(link, s.autopilot, s.link_timeout)
         while True:
-            if not link.poll(0.05) and time.monotonic() - st.last_heard > s.link_timeout:
-                return t0_ms, False, False, (f"link lost: nothing from {self.flavour.name} at {s.autopilot} "
-                                             f"for {s.link_timeout:g} s")
-            if link.in_mode(self.flavour.offboard):
-                in_offboard = True
-            elif in_offboard:
-                f = self.flavour
-                return t0_ms, False, False, (f"{f.name} left {f.offboard.name} (custom mode "
-                                             f"{st.custom_mode:#x}): its offboard-loss failsafe or a "
-                                             f"pilot/GCS switch{_said(link)}")
-            if not st.armed and in_offboard:
-                return t0_ms, False, False, f"{self.flavour.name} disarmed{_said(link)}"
-            if last_ms >= 0 and st.time_boot_ms - last_ms > OFFBOARD_LOSS_MS:
-                return t0_ms, False, False, (
-                    f"no setpoint for {(st.time_boot_ms - last_ms) * 1e-3:.1f} s of PX4's clock (this "
-                    f"process stalled): past PX4's offboard-loss timeout (COM_OF_LOSS_T, "
-                    f"{OFFBOARD_LOSS_MS / 1000:g} s), its failsafe took over{_said(link)}")
+            why = watch.poll(0.05) or watch.stalled(last_ms)
+            if why:
+                return t0_ms, False, False, why
             if st.attitude_ms == last_ms:
                 continue
             last_ms = st.attitude_ms
@@ -224,14 +181,3 @@ class OffboardCompanion(Companion):
             writer.writerow(CSV_COLUMNS)
             writer.writerows([f"{v:.9g}" for v in row] for row in log.rows)
 
-
-def _result_name(result: int | None) -> str:
-    if result is None:
-        return "no acknowledgement"
-    entry = mavlink.enums["MAV_RESULT"].get(result)
-    return entry.name if entry is not None else str(result)
-
-
-def _said(link: OffboardLink) -> str:
-    texts = list(dict.fromkeys(link.state.status_texts))[-3:]  # the newest three distinct texts
-    return (f"; {link.flavour.name} said: " + " | ".join(texts)) if texts else ""

@@ -22,7 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "(motor speeds sent as throttles through the vehicle's motor curve) and record every frame to a "
             f".tlog for `quadsr identify`. Bundled profiles: {names}. paper-train and paper-validate fly "
             "open loop from altitude: start the SITL with --ground none --initial-position 0,0,-200. "
-            "closed-loop takes off from the ground: start the SITL with its default ground."
+            "closed-loop takes off from the ground: start the SITL with its default ground. With --autopilot "
+            "the flight goes through real PX4 OFFBOARD (quadsr px4): exit 4 if PX4 refuses or leaves "
+            "OFFBOARD, 3 if it goes silent."
         ),
     )
     p.add_argument(
@@ -33,6 +35,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="udp:127.0.0.1:4560",
         metavar="udp:HOST:PORT",
         help="the SITL's HIL address (default udp:127.0.0.1:4560)",
+    )
+    p.add_argument(
+        "--autopilot",
+        default=None,
+        metavar="udp:HOST:PORT",
+        help="fly through real PX4's offboard link instead of the HIL link (quadsr px4 instance N: "
+        "udp:127.0.0.1:14580+N): body-rate and thrust setpoints from a closed-loop profile (px4-offboard); "
+        "--out then logs that link, PX4 writes its ULog and quadsr px4 the truth .tlog",
     )
     p.add_argument(
         "--duration",
@@ -81,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     for flag, value in (("--timeout", args.timeout), ("--connect-timeout", args.connect_timeout)):
         if not value > 0:
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
+    if args.autopilot:
+        return _run_offboard(args)
     summary = fly(
         profile=args.profile,
         out=args.out,
@@ -93,10 +105,36 @@ def run(args: argparse.Namespace) -> int:
         connect_timeout=args.connect_timeout,
         progress=not args.no_progress,
     )
+    _print(summary.lines())
+    return 0
+
+
+def _run_offboard(args: argparse.Namespace) -> int:
+    """`quadsr excite --autopilot`: the flight through PX4 OFFBOARD; exit 0, 3 (silent), 4 (refused/left)."""
+    from bridge.link import parse_endpoint
+    from identification.offboard_excite import OffboardExcitationSettings, fly_offboard
+
+    if args.signing_key:
+        raise UserError("--signing-key signs the HIL link; PX4's offboard link (--autopilot) is not signed",
+                        hint="leave out --signing-key with --autopilot")
+    parse_endpoint(args.autopilot)
+    settings = OffboardExcitationSettings(autopilot=args.autopilot, connect_timeout=max(args.connect_timeout,
+                                                                                         30.0))
+    print(f"quadsr excite: profile {args.profile} through PX4 OFFBOARD at {args.autopilot}, logging to "
+          f"{args.out}", flush=True)
+    flight = fly_offboard(args.profile, args.out, settings, args.duration, args.seed, args.vehicle)
+    _print(flight.lines())
+    if flight.message:
+        print(f"quadsr excite: {flight.message}", file=sys.stderr, flush=True)
+        return 3 if flight.link_lost else 4
+    return 0
+
+
+def _print(lines: list[str]) -> None:
+    """Print the summary lines; a closed pipe (`| head`) is not an error."""
     try:
-        for line in summary.lines():
+        for line in lines:
             print(line)
         sys.stdout.flush()
     except BrokenPipeError:  # `quadsr excite ... | head`: the flight and its log are complete anyway
         sys.stdout = open(os.devnull, "w")  # stdout must stay a valid file until the interpreter exits
-    return 0

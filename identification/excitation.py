@@ -18,6 +18,11 @@ Kinds:
   follows a slow Lissajous path with a turning heading while PRBS or chirp excitation is added to every
   motor; the excitation fades near the box walls and the tilt limit, so the vehicle stays where a real
   one would survive.
+  Flown through an autopilot's offboard link (identification.offboard_excite) the same reference, signal
+  and fading drive body-rate setpoints instead: the stabiliser's outer loops give rates and thrust, the
+  signal's channels 1-3 add body_rate_amplitude (rad/s) to the roll, pitch, yaw rates and channel 4 adds
+  thrust_amplitude (a fraction) to the collective thrust; the autopilot's rate loop turns them into motor
+  commands.
 """
 
 from __future__ import annotations
@@ -110,6 +115,8 @@ class ClosedLoopProfile:
     reference_period: tuple[float, float, float]  # s
     yaw_rate: float  # rad/s
     gains: StabilizerGains = field(default_factory=StabilizerGains)
+    body_rate_amplitude: float = 1.0  # rad/s added to the body-rate setpoints, through an autopilot
+    thrust_amplitude: float = 0.15  # fraction of the collective thrust added, through an autopilot
     start: str = "ground"
     kind: str = "closed-loop"
 
@@ -207,6 +214,8 @@ def load_profile(name_or_path: str | Path) -> Profile:
             reference_period=ref.numbers("period", 3, (8.0, 5.3, 6.1), low=0.1),  # type: ignore[arg-type]
             yaw_rate=ref.number("yaw_rate", 1.0),
             gains=gains,
+            body_rate_amplitude=ex.number("body_rate_amplitude", 1.0, low=0.0),
+            thrust_amplitude=ex.number("thrust_amplitude", 0.15, low=0.0, high=0.9),
         )
         for sub_reader in (to, box, ex, backoff, ref, st):
             sub_reader.done()
@@ -368,6 +377,20 @@ class ClosedLoopExcitation:
         self.scale = self.limit_scale(xi)
         self.min_scale = min(self.min_scale, self.scale)
         return np.maximum(speeds + self.scale * self.p.amplitude * self.signal(te), 0.0)
+
+    def rates_and_thrust(self, t: float, xi: np.ndarray) -> tuple[np.ndarray, float]:
+        """Setpoints for an autopilot's rate loop at t (s) since the flight start: body rates FRD (3,) rad/s
+        and collective thrust (N), the stabiliser's outer loops plus the scaled excitation once begun."""
+        rates, thrust = self.stabilizer.rates_and_thrust(xi, self.reference(t))
+        te = t - self.p.excitation_start
+        if te < 0:
+            self.scale = 0.0
+            return np.asarray(rates, dtype=float), thrust
+        self.scale = self.limit_scale(xi)
+        self.min_scale = min(self.min_scale, self.scale)
+        sig = self.signal(te)
+        rates_out = np.asarray(rates, dtype=float) + self.scale * self.p.body_rate_amplitude * sig[:3]
+        return rates_out, thrust * (1.0 + self.scale * self.p.thrust_amplitude * float(sig[3]))
 
 
 def make_generator(

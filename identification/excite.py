@@ -46,15 +46,17 @@ class FlightSummary:
     excitation_scale_min: float | None = None  # closed-loop: smallest excitation scale (0 = fully backed off)
     frames: int = 0
     status_texts: list[str] = field(default_factory=list)
+    speaker: str = "SITL"  # who said the status texts
+    unit: str = "steps"  # what a step is (setpoints, through an autopilot)
 
     def lines(self) -> list[str]:
         """The summary as printable lines."""
         x = self.final_xi
         rate = self.steps / self.wall_time if self.wall_time > 0 else float("nan")
         out = [
-            f"profile {self.profile}: {self.steps} steps, {self.sim_time:.3f} s simulated in "
+            f"profile {self.profile}: {self.steps} {self.unit}, {self.sim_time:.3f} s simulated in "
             f"{self.wall_time:.2f} s "
-            f"wall ({rate:.0f} steps/s)",
+            f"wall ({rate:.0f} {self.unit}/s)",
             f"final state: position NED [{x[0]:.2f}, {x[1]:.2f}, {x[2]:.2f}] m, "
             f"velocity [{x[3]:.2f}, {x[4]:.2f}, "
             f"{x[5]:.2f}] m/s, roll/pitch/yaw [{math.degrees(x[6]):.1f}, {math.degrees(x[7]):.1f}, "
@@ -66,7 +68,7 @@ class FlightSummary:
         if self.excitation_scale_min is not None:
             out.append(f"excitation backed off to {self.excitation_scale_min:.2f} of full at the most")
         out.append(f"telemetry log: {self.out} ({self.frames} frames)")
-        out.extend(f"SITL said: {s}" for s in self.status_texts)
+        out.extend(f"{self.speaker} said: {s}" for s in self.status_texts)
         return out
 
 
@@ -124,7 +126,7 @@ def fly(
                 obs = client.step([curve.throttle_for_speed(float(w)) for w in speeds])
                 if obs.truth is not None and np.isfinite(obs.truth.position).all():
                     xi = obs.truth.xi
-                _account(summary, xi, origin_z, xi0)
+                account(summary, xi, origin_z, xi0)
                 summary.steps += 1
                 if bar is not None:
                     bar.update(1)
@@ -167,7 +169,8 @@ def _check_start(start: str, xi0: np.ndarray, hil: str) -> None:
         )
 
 
-def _account(s: FlightSummary, xi: np.ndarray, origin_z: float, xi0: np.ndarray) -> None:
+def account(s: FlightSummary, xi: np.ndarray, origin_z: float, xi0: np.ndarray) -> None:
+    """Add the state xi (12: NED m, m/s, ZYX rad, FRD rad/s) to the summary's extremes."""
     alt = origin_z - float(xi[2])
     s.min_altitude = min(s.min_altitude, alt)
     s.max_altitude = max(s.max_altitude, alt)

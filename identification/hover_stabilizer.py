@@ -69,8 +69,20 @@ class HoverStabilizer:
 
     def command(self, xi: np.ndarray, ref: Reference) -> np.ndarray:
         """Rotor speeds (4,) rad/s for state xi (12: NED m, m/s, ZYX rad, FRD rad/s) and the reference."""
+        (pc, qc, rc), thrust = self.rates_and_thrust(xi, ref)
+        p, q, r = (float(v) for v in xi[9:12])
+        # rates -> torques with gyroscopic feed-forward
+        w = np.array((p, q, r))
+        kr = self.gains.rate_gain
+        alpha = np.array((kr[0] * (pc - p), kr[1] * (qc - q), kr[2] * (rc - r)))
+        tau = self.J @ alpha + np.cross(w, self.J @ w)
+        return self.allocate(thrust, tau)
+
+    def rates_and_thrust(self, xi: np.ndarray, ref: Reference) -> tuple[tuple[float, float, float], float]:
+        """The outer loops alone: body rate commands FRD (rad/s) and the collective thrust (N) for state xi
+        (12: NED m, m/s, ZYX rad, FRD rad/s) and the reference (an autopilot's rate loop does the rest)."""
         gn = self.gains
-        x, y, z, vx, vy, vz, phi, theta, psi, p, q, r = (float(v) for v in xi)
+        x, y, z, vx, vy, vz, phi, theta, psi = (float(v) for v in xi[:9])
         # position -> velocity -> acceleration (NED)
         vc = [
             _clip(gn.position_gain[i] * (ref.position[i] - pos) + ref.velocity[i], gn.max_speed[i])
@@ -101,12 +113,7 @@ class HoverStabilizer:
         pc = dphi - sth * dpsi
         qc = cphi * dtheta + sphi * cth * dpsi
         rc = -sphi * dtheta + cphi * cth * dpsi
-        # rates -> torques with gyroscopic feed-forward
-        w = np.array((p, q, r))
-        kr = gn.rate_gain
-        alpha = np.array((kr[0] * (pc - p), kr[1] * (qc - q), kr[2] * (rc - r)))
-        tau = self.J @ alpha + np.cross(w, self.J @ w)
-        return self.allocate(thrust, tau)
+        return (pc, qc, rc), thrust
 
     def allocate(self, thrust: float, tau: np.ndarray) -> np.ndarray:
         """Rotor speeds (4,) rad/s for thrust (N) and torques FRD (N m); squares clipped to [0, w_max^2]."""

@@ -13,8 +13,10 @@ What is matched (PX4 parameter: from the vehicle):
   most 80% of acos(1/TW) (the tilt at which full thrust still holds altitude), MPC_ACC_UP_MAX (m/s^2) at most
   4 and at most half of g (TW - 1), MPC_ACC_HOR_MAX (m/s^2) at most 5 and at most half of g tan(tilt max),
   MPC_THR_MIN (normalised) where the rotors spin.
+- SDLOG_PROFILE: PX4 SITL's logging set (default, estimator replay, vision: 131) plus system identification
+  (bit 3): actuator_motors and vehicle_angular_velocity at the control rate, so that `quadsr identify` reads
+  the motor commands of a PX4-flown flight at that rate rather than actuator_outputs' 10 Hz.
 """
-
 from __future__ import annotations
 
 import math
@@ -27,6 +29,7 @@ from bridge.vehicle import VehicleConfig
 
 AIRFRAME_ID = 10099  # SYS_AUTOSTART of quadsr's airframes (free in PX4's init.d-posix/airframes)
 MIN_THRUST_TO_WEIGHT = 1.2  # below it PX4 cannot hold altitude with any margin
+SDLOG_PROFILE = 131 | 8  # PX4 SITL's rcS default | SYSTEM_IDENTIFICATION
 
 
 @dataclass(frozen=True)
@@ -113,5 +116,6 @@ def airframe_for(vehicle: VehicleConfig) -> Px4Airframe:
         "MPC_TILTMAX_AIR": round(tilt_max, 1),
         "MPC_ACC_UP_MAX": round(acc_up, 2),
         "MPC_ACC_HOR_MAX": round(acc_hor, 2),
+        "SDLOG_PROFILE": SDLOG_PROFILE,
     })
     return Px4Airframe(vehicle.name, params, tw, u_hover, rms)

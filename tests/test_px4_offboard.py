@@ -91,7 +91,8 @@ def test_px4_ulog_of_the_flight_is_read_by_quadsr_identify(px4_rt, tmp_path):
                           cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     said = done.stderr + done.stdout
-    assert "motor commands from actuator_outputs" in said  # PX4 SITL's esc_status is made up: not used
+    # PX4 SITL's esc_status is made up: not used; quadsr's airframe logs actuator_motors at the control rate
+    assert "motor commands from actuator_motors" in said
     rows = int(re.search(r"(\d+) rows from 1 log", said).group(1))
     assert rows > 1000  # boot, take-off and Case II on one timeline (the log is still being written)
     learned = yaml.safe_load((tmp_path / "model.yaml").read_text())

@@ -12,12 +12,15 @@ Topics (instance 0; times from timestamp_sample where the topic has it, else tim
   900 disarmed, 1000 armed idle, ~1450-1550 in hover): a channel n with <PREFIX>_FUNCn = 101..104 is motor
   1..4, throttle = (value - <PREFIX>_MINn) / (<PREFIX>_MAXn - <PREFIX>_MINn), defaults 1000 and 2000 us
   (PX4's) when the log has no such parameters. Values that never exceed 2 are taken as normalized [0, 1].
-  Without actuator_outputs, actuator_motors control[0..3] (normalized thrust, motor order) is used.
+  Without actuator_outputs, actuator_motors control[0..3] (normalized thrust, motor order) is used; and
+  also when it is logged at least 1.5x as often (PX4's system identification logging profile), then turned
+  into PX4's output through THR_MDL_FAC's inverse.
 - vehicle_land_detected: rows where landed is true are dropped (ground contact is not free flight).
 - targets 'truth': the estimator's own accelerations: vehicle_local_position ax ay az and
   vehicle_angular_velocity xyz_derivative. 'sensors': sensor_combined accelerometer (FRD specific force)
   rotated with the attitude plus g, and its gyro differentiated (Savitzky-Golay, identification.targets),
-  computed at the sensor rate and then resampled.
+  computed at the sensor rate and then resampled; each sample is placed at the middle of the interval PX4
+  integrated it over (timestamp - gyro_integral_dt / 2).
 """
 
 from __future__ import annotations
@@ -189,10 +192,33 @@ def _pwm_range(params: dict[str, Any], prefix: str | None, channel: int) -> tupl
 QUAD_X_MIX = np.array([[-1.0, 1.0, 1.0], [1.0, -1.0, 1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, -1.0]])
 
 
+def _median_interval(topics: _Topics, name: str) -> float:
+    """Median sample interval (s) of a topic, inf with fewer than two samples."""
+    t = topics.times(topics.get(name, "its rate"))
+    return float(np.median(np.diff(t))) if len(t) > 1 else float("inf")
+
+
+def _px4_output_for_thrust(thrust: np.ndarray, factor: float) -> np.ndarray:
+    """PX4's motor output u in [0, 1] for normalised thrust t: the root of t = (1 - f) u + f u^2
+    (THR_MDL_FAC f), as PX4's output driver computes it from actuator_motors."""
+    t = np.clip(thrust, 0.0, 1.0)
+    if factor <= 0.0:
+        return t
+    b = 1.0 - factor
+    return (-b + np.sqrt(b * b + 4.0 * factor * t)) / (2.0 * factor)
+
+
 def _actuator_throttle_stream(topics: _Topics, notes: list[str]) -> Stream:
-    """Motor throttles in [0, 1] (motor order): actuator_outputs, actuator_motors or actuator_controls_0."""
+    """Motor throttles in [0, 1] (motor order): actuator_outputs, actuator_motors or actuator_controls_0.
+
+    actuator_motors is taken over actuator_outputs when it is logged at least 1.5x as often (PX4's system
+    identification logging profile, SDLOG_PROFILE bit 3, logs it at the control rate, actuator_outputs at
+    10 Hz); it holds normalised thrust, turned into the output through THR_MDL_FAC when the log has it."""
     params = topics.ulog.initial_parameters
-    if topics.has("actuator_outputs"):
+    motors_faster = topics.has("actuator_outputs") and topics.has("actuator_motors") and \
+        "THR_MDL_FAC" in params and \
+        _median_interval(topics, "actuator_motors") * 1.5 <= _median_interval(topics, "actuator_outputs")
+    if topics.has("actuator_outputs") and not motors_faster:
         data = topics.get("actuator_outputs", "the motor commands")
         t = topics.times(data)
         channels, prefix = _output_functions(params)
@@ -221,6 +247,12 @@ def _actuator_throttle_stream(topics: _Topics, notes: list[str]) -> Stream:
         thr = np.clip(
             _Topics.columns(data, [f"control[{i}]" for i in range(4)], "actuator_motors", topics.path), 0, 1
         )
+        if motors_faster:
+            factor = float(params["THR_MDL_FAC"])
+            thr = _px4_output_for_thrust(thr, factor)
+            notes.append(f"motor commands from actuator_motors (normalized thrust through THR_MDL_FAC "
+                         f"{factor:g} to the output, motor order; logged more often than actuator_outputs)")
+            return Stream("actuator_motors", topics.times(data), thr)
         notes.append("motor commands from actuator_motors (normalized thrust, motor order)")
         return Stream("actuator_motors", topics.times(data), thr)
     data = topics.get(
@@ -433,6 +465,10 @@ def _sensor_target_stream(
     """Sensor-derived targets at sensor_combined's times (rotated specific force + g, gyro derivative)."""
     sc = topics.get("sensor_combined", "the 'sensors' targets (accelerometer and gyro)")
     ts = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
+    if "gyro_integral_dt" in sc:  # each sample is the mean over the integration interval ending at timestamp
+        ts = ts - 0.5e-6 * sc["gyro_integral_dt"].astype(float)
+        if np.any(np.diff(ts) <= 0):  # a jittering interval must not reorder the samples
+            ts = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
     gyro = _Topics.columns(sc, [f"gyro_rad[{i}]" for i in range(3)], "sensor_combined", topics.path)
     acc = _Topics.columns(sc, [f"accelerometer_m_s2[{i}]" for i in range(3)], "sensor_combined", topics.path)
     q, ok = s_att.resample(ts)
