@@ -32,6 +32,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from identify_paper import CLOSED_LOOP  # noqa: E402
 
+from bridge.vehicle import load_vehicle  # noqa: E402
 from identification.dataset import load_dataset  # noqa: E402
 from identification.identify import identify  # noqa: E402
 from identification.model_file import save_model  # noqa: E402
@@ -58,7 +59,8 @@ def run(name: str, profile: str, out: Path, seed: int, duration: float) -> int:
     fly_excitation(profile, log, sitl_args=CLOSED_LOOP, seed=seed, duration=duration,
                    log_path=out / f"sitl-{name}.log")
     print(f"\n== {name}: flew {duration:g} s in {time.perf_counter() - start:.1f} s")
-    model = identify(load_dataset(log), engine="default", seed=seed, progress=False)
+    gravity = load_vehicle("fang-chen-buaa").gravity  # the SITL's (9.8), not identify's default 9.80665
+    model = identify(load_dataset(log), engine="default", seed=seed, progress=False, gravity=gravity)
     save_model(model, out / f"model-{name}.yaml")
     info = model.extra["identifiability"]["targets"]
     print("| target | same terms | missing | extra | max coef. error | warned terms |")
