@@ -6,6 +6,8 @@ the real SITL's paper-vehicle flights (paper-train for training, paper-validate 
 from 200 m, ideal sensors, truth targets). A case may name a SITL vehicle file with effects (the SITL issue's
 `fang-chen-aero`, ...): it runs when that file exists and is listed as not run otherwise. Every case trains
 on one flight and validates on another (synthetic: another seed).
+CLOSED_LOOP_CASES: closed-loop flights from the ground (the closed-loop profile: hover stabiliser, PRBS on
+every motor; ideal sensors, truth targets), trained on one flight and validated on another.
 
 Engines, same data, same run: ours (`discovery`, the default: body frame, features from primitives), the
 old library engine (`sparse`), and the baselines: PySINDy (STLSQ) with the physics library (quadsr's
@@ -129,6 +131,37 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float) -> tuple[Dat
         fly_excitation(profile, tlog, sitl_args=args, seed=seed, duration=dur, vehicle=str(path),
                        log_path=out / f"sitl-{case.sitl_vehicle}-{preset}-{profile}.log")
         logs.append(load_dataset(tlog, targets="sensors" if case.sensors else "truth"))
+        tlogs.append(tlog)
+    return logs[0], logs[1], tlogs
+
+
+# ---------------------------------------------------------------------------------------------------
+# Closed-loop cases (issue 12, closed-loop identifiability): flown from the ground by quadsr's companion with
+# the closed-loop profile (the hover stabiliser flying a slow Lissajous path with a turning heading, per-motor
+# PRBS superposed), ideal sensors, truth targets; trained on one flight (SITL and excitation seed s) and
+# validated on another (seed s + 1). The attitude controller ties rotor speeds to angles and rates, so the
+# regressors are collinear: the engine must still return the physics' terms, not tied combinations.
+
+CLOSED_LOOP_CASES: tuple[Case, ...] = (
+    Case("sitl closed loop", sitl_vehicle="fang-chen-buaa"),
+    Case("sitl closed loop fang-chen-aero", sitl_vehicle="fang-chen-aero"),
+)
+
+
+def closed_loop_flights(case: Case, out: Path, seed: int,
+                        duration: float) -> tuple[Dataset, Dataset, list[Path]]:
+    """Fly the closed-loop profile twice from the ground (training: duration s, seed; validation: the
+    profile's own duration, seed + 1), each in a fresh SITL with the case's vehicle and ideal sensors."""
+    from quadsr.pipeline import GROUND_SITL, fly_excitation
+
+    path = vehicle_file(case.sitl_vehicle or "")
+    logs, tlogs = [], []
+    for role, s, dur in (("train", seed, duration), ("validate", seed + 1, None)):
+        tlog = out / f"{case.sitl_vehicle}-closed-loop-{role}.tlog"
+        args = [*GROUND_SITL, "--sensors", "ideal", "--vehicle", str(path), "--seed", str(s)]
+        fly_excitation("closed-loop", tlog, sitl_args=args, seed=s, duration=dur, vehicle=str(path),
+                       log_path=out / f"sitl-{case.sitl_vehicle}-closed-loop-{role}.log")
+        logs.append(load_dataset(tlog))
         tlogs.append(tlog)
     return logs[0], logs[1], tlogs
 
@@ -275,7 +308,7 @@ def main() -> int:
     ap.add_argument("--out", default="results/discovery", help="folder for SITL flights")
     args = ap.parse_args()
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
-    cases = [c for c in CASES if args.cases is None or c.name in args.cases.split(",")]
+    cases = [c for c in (*CASES, *CLOSED_LOOP_CASES) if args.cases is None or c.name in args.cases.split(",")]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows: list[Row] = []
@@ -287,7 +320,8 @@ def main() -> int:
                 continue
             from bridge.vehicle import load_vehicle
 
-            train, val, tlogs = sitl_flights(case, out, args.seed, args.train_duration)
+            flights = closed_loop_flights if case in CLOSED_LOOP_CASES else sitl_flights
+            train, val, tlogs = flights(case, out, args.seed, args.train_duration)
             reference = true_model(load_vehicle(str(vehicle_file(case.sitl_vehicle))))
             gravity = load_vehicle(str(vehicle_file(case.sitl_vehicle))).gravity
         else:

@@ -30,6 +30,9 @@ class Candidate:
     engine: str = ""
     holdout_loss: float | None = None
     predict: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False, compare=False)
+    # how well the fit rows identify its terms: the weakest term's t ratio (collinearity.weakest_t);
+    # None: not measured (an engine whose candidates are not linear in their terms)
+    weakest_t: float | None = None
 
     def evaluate(self, X: np.ndarray) -> np.ndarray:
         """The candidate's prediction on X (N,16), in the target's unit."""

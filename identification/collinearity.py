@@ -225,6 +225,47 @@ def _confounders(
     return tuple(worst[j] for j in sorted(worst))
 
 
+def weakest_t(columns: np.ndarray, y: np.ndarray) -> float:
+    """The smallest t ratio |c_j| / se_j over a linear model's non-constant terms (a pure number).
+
+    columns (N,k): the model's term columns (a constant column is fitted but not measured), y (N,): the
+    target; c the least-squares coefficients, se_j = s sqrt(VIF_j) / (sqrt(N_eff) std_j) the least-squares
+    standard error (s the residual's RMS). Rows of a flight are not independent: the residual of one sample
+    is close to the next one's, so N_eff = N (1 - rho) / (1 + rho), rho the residual's lag-1
+    autocorrelation (an AR(1) residual's effective sample size), not N. A term whose coefficient cannot be
+    told from zero given its collinearity with the others and what the model leaves unexplained has a small
+    t: wz beside |wz| when the yaw rate almost never changes sign (VIF 4e6); small terms fitting the
+    targets' errors; noise-free data gives t ~1e9. 0 when there are fewer rows than columns, inf for a model
+    without a varying term.
+    """
+    a = np.asarray(columns, dtype=float)
+    y = np.asarray(y, dtype=float)
+    ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
+    a, y = a[ok], y[ok]
+    if len(y) <= a.shape[1]:
+        return 0.0
+    std = a.std(axis=0)
+    measured = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    if not measured.any():
+        return float("inf")
+    scale = np.where(measured, std, np.maximum(np.abs(a).max(axis=0), 1e-300))
+    z = a / scale  # unit spread (measured columns): least squares well scaled whatever the terms' units
+    c = np.linalg.lstsq(z, y, rcond=None)[0]
+    resid = y - z @ c
+    s = float(np.sqrt(np.mean(resid * resid)))
+    vif = np.array([t.vif for t in column_collinearity(a, [str(j) for j in range(a.shape[1])]).terms])
+    c = np.abs(c[measured])
+    if s == 0.0:
+        return float("inf") if np.all(c > 0) else 0.0
+    d = resid - resid.mean()
+    den = float(d @ d)
+    rho = float(np.clip((d[:-1] @ d[1:]) / den, 0.0, 0.999)) if den > 0 else 0.0
+    n_eff = max(len(y) * (1.0 - rho) / (1.0 + rho), 1.0)
+    with np.errstate(all="ignore"):
+        t = c / (s * np.sqrt(vif) / np.sqrt(n_eff))
+    return float(np.nan_to_num(t, nan=0.0).min())
+
+
 def describe(target: str, c: Collinearity) -> list[str]:
     """Terminal lines: which terms of a target are not identifiable from this flight and what would help."""
     bad = c.unidentifiable

@@ -31,6 +31,7 @@ import sympy
 from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
+from identification.collinearity import weakest_t
 from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import OPERATORS, FeatureSpace, grow_products, grow_unary
 from identification.library import Feature
@@ -289,6 +290,7 @@ class DiscoveryEngine:
                     predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
                 )
             )
+            out[-1].weakest_t = weakest_t(theta[:, idx], y)
         return out
 
     def _operon(
@@ -366,6 +368,8 @@ class DiscoveryEngine:
                     predict=predict,
                 )
             )
+            shapes = _term_shapes(expr)  # every additive term of the sum with its own coefficient
+            out[-1].weakest_t = weakest_t(_lambdify(prims, shapes)(P), y) if shapes else None
         return out
 
 
@@ -424,6 +428,16 @@ def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:
             feature = sympy.Mul(*factors)
             if feature not in out:
                 out.append(feature)
+    return out
+
+
+def _term_shapes(expr: sympy.Expr) -> list[sympy.Expr]:
+    """The distinct additive terms of an expression (nested sums flattened), coefficients dropped."""
+    out: list[sympy.Expr] = []
+    for term in sympy.Add.make_args(sympy.Add(*sympy.Add.make_args(expr))):  # flatten unevaluated sums
+        _, shape = term.as_coeff_Mul()
+        if shape not in out:
+            out.append(shape)
     return out
 
 

@@ -88,6 +88,9 @@ class SelectionSettings:
 
     rel_tol: float = 0.02
     abs_tol: float = 1e-4
+    # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t) is not
+    # identified by the flight, and not picked while an identified one exists (pareto.select)
+    min_t: float = 5.0
 
 
 @dataclass(frozen=True)

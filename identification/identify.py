@@ -211,8 +211,10 @@ def identify(
         wall[name] = timings
         if getattr(eng, "gate_r2", None) is not None:
             gates[name] = float(eng.gate_r2)
-        if body_frame:  # the terms as functions of the 16 variables; confounders among the grown features
-            coll = model_collinearity(to_variables(chosen.expression), X[ok])  # are the engine's to report
+        if body_frame:  # the terms as functions of the 16 variables; the library's candidates are in the
+            # body frame for the angular accelerations only (its forces are NED), so only they are tried there
+            cands = (library_columns[ok], library_names) if name.startswith("dw") else None
+            coll = model_collinearity(to_variables(chosen.expression), X[ok], cands)
         else:
             coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         identifiability[name] = coll.as_dict()

@@ -6,6 +6,12 @@ The pick rows (identification.data_roles) are held out from fitting and never us
 <= best * (1 + rel_tol) + abs_tol * std(held-out target), ties broken by the lower held-out loss.
 rel_tol (2%) lets a simpler model win when extra terms only fit noise; abs_tol (1e-4 of the target's
 spread) treats differences at rounding level as equal on noise-free data.
+Before that, candidates the flight does not identify are set aside: those with a term whose t ratio on
+the fit rows (coefficient over its standard error, inflated by the term's VIF) is below `min_t`
+(identification.collinearity.weakest_t; measured by the engines that can, else None), as long as one
+candidate that passes exists. On closed-loop data the regressors are collinear and a model of tied
+terms with cancelling coefficients can have the lowest pick loss by fitting the targets' errors; it is not
+a model of the vehicle, and a controller derived from it can crash.
 """
 
 from __future__ import annotations
@@ -66,10 +72,17 @@ def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: 
     finite = [(c, s) for c, s in scored if math.isfinite(s)]
     if not finite:
         return min(candidates, key=lambda c: c.complexity)
+    steady = [(c, s) for c, s in finite if _identified(c, settings)]
+    finite = steady or finite
     best = min(s for _, s in finite)
     limit = best * (1.0 + settings.rel_tol) + settings.abs_tol * (scale if scale > 0 else 1.0)
     ok = [(c, s) for c, s in finite if s <= limit]
     return min(ok, key=lambda cs: (cs[0].complexity, cs[1]))[0]
+
+
+def _identified(c: Candidate, settings: SelectionSettings) -> bool:
+    """False when the fit rows do not identify the candidate's terms (module docstring)."""
+    return c.weakest_t is None or c.weakest_t >= settings.min_t
 
 
 def front_points(candidates: Sequence[Candidate], chosen: Candidate | None = None) -> list[ParetoPoint]:

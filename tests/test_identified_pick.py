@@ -1,0 +1,66 @@
+"""The pick keeps to terms the fit rows identify: collinearity.weakest_t and pareto.select's min_t rule."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import sympy
+
+from identification.candidate import Candidate
+from identification.collinearity import weakest_t
+from identification.engine_settings import SelectionSettings
+from identification.pareto import select
+
+
+def _rows(seed: int, n: int = 4000) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal(n)
+    b = rng.standard_normal(n)
+    twin = a + 1e-4 * rng.standard_normal(n)  # a near-copy of a (VIF ~1e8)
+    y = 2.0 * a + 3.0 * b + 0.01 * rng.standard_normal(n)
+    return a, b, twin, y
+
+
+def test_weakest_t_separates_identified_terms_from_tied_ones():
+    a, b, twin, y = _rows(1)
+    ones = np.ones_like(a)
+    good = weakest_t(np.column_stack([ones, a, b]), y)
+    tied = weakest_t(np.column_stack([ones, a, b, twin]), y)
+    assert good > 1000  # 2 / (0.01 / sqrt(4000)) ~ 1e4
+    assert tied < 5  # a and its twin share one coefficient: neither is told from zero
+    exact = weakest_t(np.column_stack([a, b]), 2.0 * a + 3.0 * b)
+    assert exact > 1e6  # noise-free data: every term identified
+
+
+def test_an_autocorrelated_residual_counts_fewer_independent_rows():
+    rng = np.random.default_rng(2)
+    n = 4000
+    a = rng.standard_normal(n)
+    white = 0.05 * rng.standard_normal(n)
+    slow = np.convolve(white, np.ones(40) / np.sqrt(40), mode="same")  # same spread, correlated over 40 rows
+    t_white = weakest_t(a[:, None], 0.01 * a + white)
+    t_slow = weakest_t(a[:, None], 0.01 * a + slow)
+    assert t_slow < t_white / 3  # lag-1 correlation ~0.975: ~80 times fewer effective rows
+
+
+def _candidate(size: int, holdout: float, t: float | None) -> Candidate:
+    return Candidate(sympy.Symbol(f"c{size}"), size, holdout, "test", holdout_loss=holdout, weakest_t=t)
+
+
+def test_the_pick_sets_aside_unidentified_candidates_while_one_passes():
+    settings = SelectionSettings()
+    tied = _candidate(30, 0.010, 0.5)  # the lowest pick loss, built from tied terms
+    sound = _candidate(12, 0.015, 40.0)
+    unmeasured = _candidate(40, 0.020, None)  # an engine that does not measure t: passes
+    assert select([tied, sound, unmeasured], settings) is sound
+    assert select([tied], settings) is tied  # nothing passes: the pick falls back to every candidate
+    looser = SelectionSettings(min_t=0.1)
+    assert select([tied, sound], looser) is tied
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_weakest_t_ignores_rows_that_are_not_finite(bad):
+    a, b, _, y = _rows(3)
+    cols = np.column_stack([a, b])
+    cols[5, 0] = bad
+    assert weakest_t(cols, y) > 1000
