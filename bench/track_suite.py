@@ -23,6 +23,8 @@ written) without a crash by every controller. The paper's own floors are bench/t
 
 Usage: python bench/track_suite.py [--model learned.yaml | --learn] [--cases a,b] [--conditions ideal,sensors]
        [--controllers true,pid,se3] [--out DIR]
+       python bench/track_suite.py --collect DIR [DIR ...]    (one table and the floors of flights already
+       flown by parts of the suite run side by side, each with its own --out; a later DIR's flight wins)
 Each flight starts its own SITL; the whole table is 8 x 3 x 4 flights of 15-25 s simulated (long: pick).
 """
 
@@ -48,6 +50,7 @@ from quadsr.pipeline import (  # noqa: E402
     TRUE_LABEL,
     TrackingRow,
     controller_specs,
+    flight_dir_name,
     fly_tracking,
 )
 
@@ -128,6 +131,25 @@ def _fly(spec, traj: str, duration: float, condition: str, out: Path, vehicle: P
     return row
 
 
+def collect(dirs: list[Path]) -> list[SuiteRow]:
+    """The cells of flights already flown under the --out folders `dirs` (DIR/case/condition/flight/)."""
+    from controller.metrics import metrics_from_csv
+
+    found: dict[tuple[str, str, str], SuiteRow] = {}
+    for top in dirs:
+        for case in CASES:
+            for condition in CONDITIONS:
+                state = "sensors" if condition == "sensors" else "truth"
+                for label in (LEARNED_LABEL, TRUE_LABEL, "pid", "se3"):
+                    flight = top / case / condition / flight_dir_name(label, CASES[case][0], state)
+                    if (flight / "metrics.csv").is_file():
+                        m = metrics_from_csv(flight / "metrics.csv")
+                        row = TrackingRow(label, case, state, m, "", flight, m.completed, m.crashed)
+                        found[case, condition, label] = SuiteRow(case, condition, row, "",
+                                                                 _max_ref_speed(flight))
+    return [found[k] for k in sorted(found, key=lambda k: (list(CASES).index(k[0]), CONDITIONS.index(k[1])))]
+
+
 def _mm(v: float | None) -> str:
     return "n/a" if v is None or not math.isfinite(v) else f"{v * 1000:.2f}"
 
@@ -202,7 +224,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma list among learned, true, pid, se3")
     ap.add_argument("--vehicle", type=Path, default=REPO / "sitl" / "vehicles" / "fang-chen-buaa.yaml")
     ap.add_argument("--out", type=Path, help="keep every flight here (default: a temporary folder)")
+    ap.add_argument("--collect", type=Path, nargs="+", metavar="DIR",
+                    help="fly nothing: the table and floors of the flights under these --out folders")
     args = ap.parse_args(argv)
+    if args.collect:
+        return report(collect(args.collect))
     cases = [c for c in args.cases.split(",") if c]
     conditions = [c for c in args.conditions.split(",") if c]
     bad = [c for c in cases if c not in CASES] + [c for c in conditions if c not in CONDITIONS]
@@ -237,6 +263,11 @@ def main(argv: list[str] | None = None) -> int:
                 figure = "no data" if m is None else f"RMS after 5 s {_mm(m.rms_after_5s_m)} mm"
                 print(f"  {case} {condition} {spec.label}: {figure}", flush=True)
                 cells.append(cell)
+    return report(cells)
+
+
+def report(cells: list[SuiteRow]) -> int:
+    """Print the table and the floors; 0 when every floor passed, else 1."""
     print_table(cells)
     lines = check_floors(cells)
     print("\n### Floors\n")

@@ -195,3 +195,20 @@ def read_metrics_csv(path: str | Path) -> dict[str, str]:
     with Path(path).open(newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
     return dict(zip(rows[0], rows[1], strict=True))
+
+
+def metrics_from_csv(path: str | Path) -> FlightMetrics:
+    """A metrics.csv written by write_metrics back as FlightMetrics (empty cells: None)."""
+    text = read_metrics_csv(path)
+    values: dict[str, object] = {}
+    for f in fields(FlightMetrics):
+        v = text[f.name]
+        if f.type in ("str", str):
+            values[f.name] = v
+        elif f.type in ("bool", bool):
+            values[f.name] = v == "True"
+        elif f.type in ("int", int):
+            values[f.name] = int(v)
+        else:
+            values[f.name] = None if v == "" else float(v)
+    return FlightMetrics(**values)

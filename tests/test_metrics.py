@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from controller.metrics import compute_metrics, read_metrics_csv, settle_time, wrap_angle, write_metrics
+from controller.metrics import (
+    compute_metrics,
+    metrics_from_csv,
+    read_metrics_csv,
+    settle_time,
+    wrap_angle,
+    write_metrics,
+)
 
 DT = 0.004
 
@@ -93,6 +100,10 @@ def test_markdown_and_csv_writers(tmp_path):
     md, csv_path = write_metrics(never, tmp_path)
     assert "never settled" in md.read_text()
     assert read_metrics_csv(csv_path)["settle_time_s"] == ""
+    # read back whole (repr: a nan tilt compares equal), the unsettled time as None
+    back = metrics_from_csv(csv_path)
+    assert repr(back) == repr(never) and back.settle_time_s is None
+    assert metrics_from_csv(write_metrics(m, tmp_path / "m")[1]) == m
 
 
 def test_overshoot_along_the_first_approach_including_a_takeoff_phase():
