@@ -44,7 +44,7 @@ def _fly(sitl, model: Path, trajectory: Path, out: Path, duration: float, state:
          "--model", str(model), "--trajectory", str(trajectory), "--state", state,
          "--duration", str(duration),
          "--hil", sitl.hil, "--out", str(out), "--link-timeout", "10"],
-        capture_output=True, text=True, timeout=180, cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        capture_output=True, text=True, timeout=600, cwd=REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
