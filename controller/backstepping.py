@@ -75,7 +75,7 @@ class ModelErrorObserver:
 
     def __init__(self, expressions: Mapping[str, sympy.Expr], rate: float, angular_rate: float,
                  max_accel: float, max_angular: float, hover_speed: float = 0.0, noise_accel: float = 0.0,
-                 noise_angular: float = 0.0):
+                 noise_angular: float = 0.0, noise_horizontal: float | None = None):
         names = TARGET_NAMES if angular_rate > 0.0 else TARGET_NAMES[:3]
         self._accel = None
         self.code = "off"  # its model function: "compiled", "python (why)", or off
@@ -90,7 +90,8 @@ class ModelErrorObserver:
         self._limits = ((max_accel,) * 3 + (max_angular,) * 3)[: len(names)]
         # noise-adaptive gain: d's noise is about sigma sqrt(k / 2) for a white innovation of std sigma and
         # a filter gain k, so k is capped at 2 (target / sigma)^2 (target: d's noise std; 0: no cap)
-        self._targets = ((noise_accel,) * 3 + (noise_angular,) * 3)[: len(names)]
+        horizontal = noise_accel if noise_horizontal is None else noise_horizontal  # d_Ex, d_Ey
+        self._targets = ((horizontal, horizontal, noise_accel) + (noise_angular,) * 3)[: len(names)]
         self._noise_var = [0.0] * 6  # sigma^2 per channel, from the first differences of the measurements
         self._noise_count = [0] * 6  # measurements differenced so far, per channel
         self._last_meas: list[float | None] = [None] * 6
@@ -239,7 +240,8 @@ class BacksteppingController:
         self._observer_gate = g.observer_gate_speed if g.observer_gate_speed > 0.0 else math.inf
         self.observer = ModelErrorObserver(exprs, g.observer_rate, g.observer_angular_rate,
                                            g.observer_max_accel, g.observer_max_angular, self.law.hover_speed,
-                                           g.observer_noise_accel, g.observer_noise_angular)
+                                           g.observer_noise_accel, g.observer_noise_angular,
+                                           g.observer_noise_horizontal)
         c = self.gains.c_gains
         self._c = c
         self._kz = (1.0 + c[0] * c[4], c[0] + c[4])  # z error dynamics e'' + kz1 e' + kz0 e = 0
