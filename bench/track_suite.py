@@ -10,17 +10,21 @@ Conditions:
   sensors   realistic sensor noise, the state estimated from HIL_SENSOR/HIL_GPS (--state sensors)
   mismatch  the SITL flies a vehicle 20 % heavier, with 20 % more inertia and 10 % less thrust than the
             vehicle file the controllers (and the true model) are built from; true state fed back
-  wind      steady 5 m/s with moderate turbulence: needs wind in the SITL (issue 13); until the SITL has a
-            wind option, its rows say "needs SITL wind" and are not flown (no fake wind)
-Controllers: backstepping on the learned model (--model) and on the true model, PID cascade, SE(3).
+  wind      steady 5 m/s toward north (NED) with moderate Dryden turbulence, seeded (--wind-seed); the
+            controllers know nothing of it (the models hold no wind); true state fed back
+Controllers: backstepping on the learned model and on the true model, PID cascade, SE(3). The learned model
+is --model, or with --learn one `quadsr identify` (default engine, 60 generations, seed 0) learns on a 32 s
+paper-train flight of the nominal vehicle (as quadsr/campaign/examples/robustness.yaml does).
 
 Floors: on every feasible case, backstepping never crashes, its RMS after 5 s is at most 1.2 x SE(3)'s
 + 2 mm and its take-off overshoot at most 5 cm; under mismatch (and wind) its RMS after 5 s is at most
 SE(3)'s (+ 2 mm); the infeasible reference is flown slower (the reference's speed stays below the 8 m/s
 written) without a crash by every controller. The paper's own floors are bench/track_paper.py's.
 
-Usage: python bench/track_suite.py [--model learned.yaml] [--cases a,b] [--conditions ideal,sensors]
+Usage: python bench/track_suite.py [--model learned.yaml | --learn] [--cases a,b] [--conditions ideal,sensors]
        [--controllers true,pid,se3] [--out DIR]
+       python bench/track_suite.py --collect DIR [DIR ...]    (one table and the floors of flights already
+       flown by parts of the suite run side by side, each with its own --out; a later DIR's flight wins)
 Each flight starts its own SITL; the whole table is 8 x 3 x 4 flights of 15-25 s simulated (long: pick).
 """
 
@@ -39,6 +43,7 @@ import yaml
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from bridge.errors import UserError  # noqa: E402
 from bridge.yaml_file import load_yaml_file  # noqa: E402
 from quadsr.pipeline import (  # noqa: E402
     GROUND_SITL,
@@ -46,6 +51,7 @@ from quadsr.pipeline import (  # noqa: E402
     TRUE_LABEL,
     TrackingRow,
     controller_specs,
+    flight_dir_name,
     fly_tracking,
 )
 
@@ -63,6 +69,7 @@ CASES = {  # name -> (trajectory, flight length [s] including the take-off phase
 CONDITIONS = ("ideal", "sensors", "mismatch", "wind")
 WRITTEN_SPEED = 8.0  # m/s, the infeasible circle's speed as written
 MISMATCH = {"mass": 1.2, "inertia": 1.2, "thrust_coefficient": 0.9}
+WIND_SITL = ("--wind", "5,0,0", "--turbulence", "moderate", "--wind-seed", "0")  # m/s NED; Dryden preset
 
 
 @dataclass
@@ -83,17 +90,9 @@ def mismatched_vehicle(source: Path, out: Path) -> Path:
     data["mass"] = data["mass"] * MISMATCH["mass"]
     data["inertia"] = [v * MISMATCH["inertia"] for v in data["inertia"]]
     data["thrust_coefficient"] = data["thrust_coefficient"] * MISMATCH["thrust_coefficient"]
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     return out
-
-
-def sitl_has_wind() -> bool:
-    """Whether `quadsr sitl` offers a wind option (issue 13)."""
-    import subprocess
-
-    proc = subprocess.run([sys.executable, "-m", "quadsr.cli", "sitl", "--help"], capture_output=True,
-                          text=True, cwd=REPO, timeout=60)
-    return "--wind" in proc.stdout
 
 
 def _max_ref_speed(flight_dir: Path | None) -> float:
@@ -104,25 +103,52 @@ def _max_ref_speed(flight_dir: Path | None) -> float:
                     for r in csv.DictReader(fh)), default=math.nan)
 
 
-def fly_cell(spec, case: str, condition: str, out: Path, vehicle: Path, wind: bool) -> SuiteRow:
-    """Fly one controller on one case under one condition (or say why not)."""
+def fly_cell(spec, case: str, condition: str, out: Path, vehicle: Path, built: dict) -> SuiteRow:
+    """Fly one controller on one case under one condition (controllers kept in `built`, by label)."""
     traj, duration, _ = CASES[case]
+    try:
+        row = _fly(spec, traj, duration, condition, out, vehicle, built)
+    except UserError as exc:  # a SITL child that did not start: the cell is not flown, and says why
+        return SuiteRow(case, condition, None, f"{spec.label}: not flown: {str(exc).splitlines()[0]}")
+    return SuiteRow(case, condition, row, row.message, _max_ref_speed(row.flight_dir))
+
+
+def _fly(spec, traj: str, duration: float, condition: str, out: Path, vehicle: Path,
+         built: dict) -> TrackingRow:
+    """One flight under the condition's SITL (wind, mismatched vehicle, realistic sensors or ideal)."""
     if condition == "wind":
-        if not wind:
-            return SuiteRow(case, condition, None, "needs SITL wind (issue 13): not flown")
-        sitl = [*GROUND_SITL, "--wind", "5,0,0", "--turbulence", "moderate"]
         row = fly_tracking(spec, traj, duration=duration, out=out / condition, vehicle=str(vehicle),
-                           sitl_args=sitl)
+                           sitl_args=[*GROUND_SITL, *WIND_SITL], built=built)
     elif condition == "mismatch":
         other = mismatched_vehicle(vehicle, out / "vehicle-mismatch.yaml")
         row = fly_tracking(spec, traj, duration=duration, out=out / condition, vehicle=str(vehicle),
-                           sitl_args=[*GROUND_SITL, "--vehicle", str(other)])
+                           sitl_args=[*GROUND_SITL, "--vehicle", str(other)], built=built)
     elif condition == "sensors":
         row = fly_tracking(spec, traj, duration=duration, out=out / condition, vehicle=str(vehicle),
-                           sensors="realistic", state="sensors")
+                           sensors="realistic", state="sensors", built=built)
     else:
-        row = fly_tracking(spec, traj, duration=duration, out=out / condition, vehicle=str(vehicle))
-    return SuiteRow(case, condition, row, row.message, _max_ref_speed(row.flight_dir))
+        row = fly_tracking(spec, traj, duration=duration, out=out / condition, vehicle=str(vehicle),
+                           built=built)
+    return row
+
+
+def collect(dirs: list[Path]) -> list[SuiteRow]:
+    """The cells of flights already flown under the --out folders `dirs` (DIR/case/condition/flight/)."""
+    from controller.metrics import metrics_from_csv
+
+    found: dict[tuple[str, str, str], SuiteRow] = {}
+    for top in dirs:
+        for case in CASES:
+            for condition in CONDITIONS:
+                state = "sensors" if condition == "sensors" else "truth"
+                for label in (LEARNED_LABEL, TRUE_LABEL, "pid", "se3"):
+                    flight = top / case / condition / flight_dir_name(label, CASES[case][0], state)
+                    if (flight / "metrics.csv").is_file():
+                        m = metrics_from_csv(flight / "metrics.csv")
+                        row = TrackingRow(label, case, state, m, "", flight, m.completed, m.crashed)
+                        found[case, condition, label] = SuiteRow(case, condition, row, "",
+                                                                 _max_ref_speed(flight))
+    return [found[k] for k in sorted(found, key=lambda k: (list(CASES).index(k[0]), CONDITIONS.index(k[1])))]
 
 
 def _mm(v: float | None) -> str:
@@ -156,6 +182,9 @@ def check_floors(cells: list[SuiteRow]) -> list[str]:
     lines = []
     by = {(c.case, c.condition, c.row.label): c for c in cells if c.row is not None and c.row.metrics}
     subjects = [label for label in (LEARNED_LABEL, TRUE_LABEL) if any(k[2] == label for k in by)]
+    lines += [f"FAIL {c.case} {c.condition}: {c.note}" for c in cells if c.row is None]
+    lines += [f"FAIL {c.row.label} {c.case} {c.condition}: no metrics ({c.note})" for c in cells
+              if c.row is not None and c.row.metrics is None]
     for (case, condition, label), c in sorted(by.items()):
         m = c.row.metrics
         feasible = CASES[case][2]
@@ -187,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     """Fly the chosen part of the table, print it and the floors; exit 1 if a floor fails."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", type=Path, help="learned model file (backstepping on it is flown too)")
+    ap.add_argument("--learn", action="store_true",
+                    help="learn the model first: paper-train (32 s, seed 0), identify's default engine")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma list among {', '.join(CASES)}")
     ap.add_argument("--conditions", default="ideal,sensors,mismatch,wind",
                     help=f"comma list among {', '.join(CONDITIONS)}")
@@ -194,7 +225,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="comma list among learned, true, pid, se3")
     ap.add_argument("--vehicle", type=Path, default=REPO / "sitl" / "vehicles" / "fang-chen-buaa.yaml")
     ap.add_argument("--out", type=Path, help="keep every flight here (default: a temporary folder)")
+    ap.add_argument("--collect", type=Path, nargs="+", metavar="DIR",
+                    help="fly nothing: the table and floors of the flights under these --out folders")
     args = ap.parse_args(argv)
+    if args.collect:
+        return report(collect(args.collect))
     cases = [c for c in args.cases.split(",") if c]
     conditions = [c for c in args.conditions.split(",") if c]
     bad = [c for c in cases if c not in CASES] + [c for c in conditions if c not in CONDITIONS]
@@ -207,22 +242,33 @@ def main(argv: list[str] | None = None) -> int:
 
     true_path = out / "true-model.yaml"
     write_true_model(str(args.vehicle), true_path)
-    specs = controller_specs(args.model, true_path, args.controllers.split(","))
-    wind = "wind" in conditions and sitl_has_wind()
+    learned = args.model
+    if args.learn and learned is None:
+        from quadsr.campaign.runner import learn_nominal_model
+
+        print("track_suite: learning the model (paper-train, 32 s, default engine, 60 generations)",
+              flush=True)
+        learned = out / "learned-model.yaml"
+        learned.write_text(learn_nominal_model(args.vehicle.read_text(encoding="utf-8"), args.vehicle.stem,
+                                               "paper-train", 32.0, 0, 60), encoding="utf-8")
+    specs = controller_specs(learned, true_path, args.controllers.split(","))
     print(f"track_suite: {len(specs)} controllers x {len(cases)} cases x {len(conditions)} conditions, "
           f"outputs in {out}", flush=True)
     cells: list[SuiteRow] = []
+    built: dict = {}  # controllers by label, built once
     for case in cases:
         for condition in conditions:
-            if condition == "wind" and not wind:
-                cells.append(SuiteRow(case, condition, None, "needs SITL wind (issue 13): not flown"))
-                continue
             for spec in specs:
-                cell = fly_cell(spec, case, condition, out / case, args.vehicle, wind)
+                cell = fly_cell(spec, case, condition, out / case, args.vehicle, built)
                 m = cell.row.metrics if cell.row is not None else None
                 figure = "no data" if m is None else f"RMS after 5 s {_mm(m.rms_after_5s_m)} mm"
                 print(f"  {case} {condition} {spec.label}: {figure}", flush=True)
                 cells.append(cell)
+    return report(cells)
+
+
+def report(cells: list[SuiteRow]) -> int:
+    """Print the table and the floors; 0 when every floor passed, else 1."""
     print_table(cells)
     lines = check_floors(cells)
     print("\n### Floors\n")

@@ -61,17 +61,21 @@ def settle_time(t: np.ndarray, error: np.ndarray, tolerance: float = SETTLE_TOLE
 
 def overshoot(position: np.ndarray, position_desired: np.ndarray, start_gap: float = 0.1) -> float:
     """How far [m] the vehicle went past the reference along the direction it was first sent: from its start
-    to the first reference point more than start_gap [m] away (a take-off phase starts at the vehicle; for a
-    take-off this is the height above the reference); 0 when it never did."""
+    to the reference's first point when that is more than start_gap [m] away (Case I, II); else the
+    reference starts at the vehicle (a take-off phase) and the direction is the reference's own first move,
+    to its first point more than start_gap from its start (for a take-off the height above the reference;
+    with an estimated state the take-off starts where the estimate puts the vehicle, a few cm off, and the
+    direction from the true start would lean that way); 0 when it never did."""
     p = np.asarray(position, dtype=float)
     r = np.asarray(position_desired, dtype=float)
     if p.shape[0] == 0:
         return 0.0
-    gaps = np.linalg.norm(r - p[0], axis=1)
+    origin = p[0] if np.linalg.norm(r[0] - p[0]) > start_gap else r[0]
+    gaps = np.linalg.norm(r - origin, axis=1)
     away = np.flatnonzero(gaps > start_gap)
     if away.size == 0:
         return 0.0
-    u = r[away[0]] - p[0]
+    u = r[away[0]] - origin
     n = float(np.linalg.norm(u))
     past = (p - r) @ (u / n)
     past = past[np.isfinite(past)]
@@ -195,3 +199,20 @@ def read_metrics_csv(path: str | Path) -> dict[str, str]:
     with Path(path).open(newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
     return dict(zip(rows[0], rows[1], strict=True))
+
+
+def metrics_from_csv(path: str | Path) -> FlightMetrics:
+    """A metrics.csv written by write_metrics back as FlightMetrics (empty cells: None)."""
+    text = read_metrics_csv(path)
+    values: dict[str, object] = {}
+    for f in fields(FlightMetrics):
+        v = text[f.name]
+        if f.type in ("str", str):
+            values[f.name] = v
+        elif f.type in ("bool", bool):
+            values[f.name] = v == "True"
+        elif f.type in ("int", int):
+            values[f.name] = int(v)
+        else:
+            values[f.name] = None if v == "" else float(v)
+    return FlightMetrics(**values)

@@ -18,9 +18,12 @@ What the paper leaves out and a real vehicle needs:
   - the optional extra integral (k_int) integrates only within `integral_zone`, never on the ground, never
     while the command is limited (conditional integration), and its contribution is clamped;
   - the horizontal acceleration is limited so that the tilt stays below max_tilt (tan(tilt) * (g - a_z)),
-    and below ground_tilt while the vehicle is still on the ground; at the limit the feedforward keeps
-    priority and only the feedback is shortened, along its own direction (saturate_feedback), so a large
-    error closes at the best feasible rate instead of settling on a lagging orbit. There is no integrator
+    and below ground_tilt while the vehicle is still on the ground; at the limit the feedforward (the
+    reference's acceleration and the model error, e.g. a wind's drag) keeps priority and only the feedback
+    is shortened, along its own direction (saturate_feedback), so a large error closes at the best feasible
+    rate instead of settling on a lagging orbit. The feedback alone is also held within max_feedback_tilt
+    (35 deg, below max_tilt's 45): a far error is closed as the PI gains were chosen for, and the rest of
+    the tilt is kept for what the reference and the wind need. There is no integrator
     to wind up (the error clip bounds the k_i term; the model-error observer does not integrate e).
 
 Derivatives a' and a'' for the attitude feedforward come from the reference's jerk and snap plus the ideal
@@ -47,8 +50,10 @@ class OuterCommand:
     integral: tuple[float, float]  # the k_int integrator state [m s]
 
 
-def saturate_feedback(ffx: float, ffy: float, fbx: float, fby: float, a_max: float) -> tuple[float, float]:
-    """ff + k fb [m/s^2] with |k fb| <= a_max - |ff| (k in [0, 1]); ff scaled to a_max alone if beyond it.
+def saturate_feedback(ffx: float, ffy: float, fbx: float, fby: float, a_max: float,
+                      fb_max: float = math.inf) -> tuple[float, float]:
+    """ff + k fb [m/s^2] with |k fb| <= min(a_max - |ff|, fb_max) (k in [0, 1]); ff scaled to a_max alone if
+    beyond it.
 
     The feedforward (what the reference needs) keeps priority; the feedback keeps its direction and gets the
     margin a_max - |ff| that is free in every direction, so the error obeys e'' = -sat(k_p e' + k_i e), a
@@ -62,6 +67,8 @@ def saturate_feedback(ffx: float, ffy: float, fbx: float, fby: float, a_max: flo
         return (ffx * a_max / n, ffy * a_max / n) if n > 0.0 else (0.0, 0.0)
     fb = math.sqrt(fbx * fbx + fby * fby)
     margin = a_max - math.sqrt(ff2)
+    if fb_max < margin:
+        margin = fb_max
     k = 1.0 if fb <= margin else margin / fb
     return ffx + k * fbx, ffy + k * fby
 
@@ -75,6 +82,7 @@ class OuterLoop:
         self._kp = (gains.k_px, gains.k_py)
         self._ki = (gains.k_ix, gains.k_iy)
         self._tan_tilt = math.tan(math.radians(gains.max_tilt_deg))
+        self._tan_feedback = math.tan(math.radians(min(gains.max_feedback_tilt_deg, gains.max_tilt_deg)))
         self._tan_ground = math.tan(math.radians(gains.ground_tilt_deg))
         self._vertical = self.vertical_limits()
         self.reset()
@@ -145,11 +153,12 @@ class OuterLoop:
         a_z = up if up > az else az  # min(max(az, up), down), NaN passing as it would there
         if down < a_z:
             a_z = down
-        a_max = (self._tan_ground if on_ground else self._tan_tilt) * (self.gravity - a_z)
-        a_h = math.hypot(ax, ay)
-        tilt_limited = a_h > a_max
+        room = self.gravity - a_z
+        a_max = (self._tan_ground if on_ground else self._tan_tilt) * room
+        fb_max = (self._tan_ground if on_ground else self._tan_feedback) * room
+        tilt_limited = math.hypot(ax, ay) > a_max or math.hypot(fbx, fby) > fb_max
         if tilt_limited:
-            ax, ay = saturate_feedback(ffx, ffy, fbx, fby, a_max)
+            ax, ay = saturate_feedback(ffx, ffy, fbx, fby, a_max, fb_max)
         limited = clipped or tilt_limited or a_z != az
         self._was_limited = limited or clipped
 

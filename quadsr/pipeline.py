@@ -41,6 +41,7 @@ from quadsr.sitl_process import SitlProcess
 PATIENT_SITL: tuple[str, ...] = ("--lockstep-timeout", "30")
 OPEN_LOOP_SITL: tuple[str, ...] = ("--ground", "none", "--initial-position", "0,0,-200", *PATIENT_SITL)
 GROUND_SITL: tuple[str, ...] = PATIENT_SITL
+SITL_START_TIMEOUT = 60.0  # s of wall time for a child to say it listens (20 s was exceeded at load 15)
 
 DEFAULT_SETTINGS = PaperSettings("default", train_duration=32.0, budget=60, track_duration=20.0)
 QUICK_SETTINGS = PaperSettings("quick", train_duration=16.0, budget=10, track_duration=12.0)
@@ -63,7 +64,7 @@ class SitlChildren:
         sitl = SitlProcess(list(args), log_path=log_path)
         self.started.append(sitl)
         try:
-            sitl.start()
+            sitl.start(timeout=SITL_START_TIMEOUT)
             yield sitl
         finally:
             code = sitl.proc.poll() if sitl.proc is not None else None
@@ -121,18 +122,22 @@ def controller_specs(learned: Path | None, true_model: Path,
 
 
 def flight_dir_name(label: str, case: str, state: str) -> str:
-    """The folder name of one tracking flight, e.g. backstepping_learned_case1_truth."""
-    return f"{label.replace(' ', '_').replace('(', '').replace(')', '')}_{case}_{state}"
+    """The folder name of one tracking flight, e.g. backstepping_learned_case1_truth (a trajectory file: its
+    stem, so a path never nests folders)."""
+    return f"{label.replace(' ', '_').replace('(', '').replace(')', '')}_{Path(case).stem}_{state}"
 
 
 def fly_tracking(spec: ControllerSpec, case: str, *, duration: float, out: Path,
                  vehicle: str = "fang-chen-buaa", sensors: str = "ideal", state: str = "truth",
                  sitl_args: Sequence[str] = GROUND_SITL, link_timeout: float = 30.0, attempts: int = 3,
-                 progress: bool = False, children: SitlChildren | None = None) -> TrackingRow:
+                 progress: bool = False, children: SitlChildren | None = None,
+                 built: dict[str, Any] | None = None) -> TrackingRow:
     """Start a SITL child, fly one case with one controller from the ground, stop the SITL; the row.
 
     A flight during which the SITL reported a problem (a failsafe STATUSTEXT) is flown again, up to
     `attempts` times. A controller that cannot be built from its model gives a row without metrics.
+    `built`: controllers already built, by label (reused, reset by the companion before each flight; the
+    backstepping law's derivation is the slow part of a short flight), and where new ones are kept.
     """
     from controller.companion import Companion, FlightSettings
     from controller.registry import make_controller
@@ -142,7 +147,11 @@ def fly_tracking(spec: ControllerSpec, case: str, *, duration: float, out: Path,
     flight_dir = out / flight_dir_name(spec.label, case, state)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        controller = make_controller(spec.controller, spec.model, veh)
+        controller = built.get(spec.label) if built is not None else None
+        if controller is None:
+            controller = make_controller(spec.controller, spec.model, veh)
+            if built is not None:
+                built[spec.label] = controller
     except UserError as exc:
         return TrackingRow(spec.label, case, state, None, f"controller not built: {exc}", flight_dir)
     trajectory = load_trajectory(case)

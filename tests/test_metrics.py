@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from controller.metrics import compute_metrics, read_metrics_csv, settle_time, wrap_angle, write_metrics
+from controller.metrics import (
+    compute_metrics,
+    metrics_from_csv,
+    read_metrics_csv,
+    settle_time,
+    wrap_angle,
+    write_metrics,
+)
 
 DT = 0.004
 
@@ -93,6 +100,10 @@ def test_markdown_and_csv_writers(tmp_path):
     md, csv_path = write_metrics(never, tmp_path)
     assert "never settled" in md.read_text()
     assert read_metrics_csv(csv_path)["settle_time_s"] == ""
+    # read back whole (repr: a nan tilt compares equal), the unsettled time as None
+    back = metrics_from_csv(csv_path)
+    assert repr(back) == repr(never) and back.settle_time_s is None
+    assert metrics_from_csv(write_metrics(m, tmp_path / "m")[1]) == m
 
 
 def test_overshoot_along_the_first_approach_including_a_takeoff_phase():
@@ -110,6 +121,16 @@ def test_overshoot_along_the_first_approach_including_a_takeoff_phase():
     side = ref.copy()
     side[:, 0] += 0.5
     assert overshoot(side, ref) == pytest.approx(0.0, abs=1e-12)
+    # a take-off from where an estimated state puts the vehicle, 7 cm off in x, then a 3 m step in x: the
+    # direction is the climb (from the true start it leaned 37 deg toward -x and the step's lag counted)
+    est = ref.copy()
+    est[:, 0] = -0.06
+    est[t >= 6.0, 0] = 3.0
+    flown = est.copy()
+    flown[t >= 6.0, 0] = 3.0 - 3.0 * np.exp(-(t[t >= 6.0] - 6.0) * 3.0)
+    flown[:, 2] -= 0.02 * np.exp(-((t - 5.0) ** 2))
+    flown[0] = 0.0
+    assert overshoot(flown, est) == pytest.approx(0.02, rel=1e-2)
     # a reference starting 4.5 m away (Case II): past it along that direction
     ref2 = np.tile([2.0, 4.0, 0.0], (t.size, 1))
     share = np.minimum(t / 3.0, 1.0 + 0.02 * np.sin(np.pi * np.clip(t - 3.0, 0.0, 1.0)))  # 2 % past at 3.5 s

@@ -82,7 +82,7 @@ def test_noise_adaptive_gain_keeps_the_estimate_quiet_and_still_finds_the_error(
     clean = ModelErrorObserver(EXPRS, rate=10.0, angular_rate=0.0, max_accel=3.0, max_angular=5.0,
                                noise_accel=0.08)
     d_clean = _run(clean, 500, true_dz=0.5, noise=0.0, seed=0)
-    assert clean.gains_used[2] == pytest.approx(1 - math.exp(-10.0 * DT))
+    assert clean.gains_used[2] == pytest.approx(1 - math.exp(-10.0 * DT))  # the thrust-axis channel
     assert d_clean[-1] == pytest.approx(0.5, abs=1e-3)
 
 
