@@ -31,7 +31,7 @@ identified in under 2 minutes of CPU time (the wall time is printed beside it: o
 several times the CPU time). PASS only when every floor holds.
 
 Usage: python bench/discovery.py [--cases NAME,...] [--engines NAME,...] [--rows N] [--seed N]
-                                 [--operon-generations N] [--train-duration S] [--out DIR]
+                                 [--operon-generations N] [--train-duration S] [--out DIR] [--reuse-flights]
 """
 
 from __future__ import annotations
@@ -141,8 +141,10 @@ def flown_vehicle(case: Case):  # -> VehicleConfig
     return vehicle.with_overrides(ground="none") if case.open_loop else vehicle
 
 
-def sitl_flights(case: Case, out: Path, seed: int, duration: float) -> tuple[Dataset, Dataset]:
-    """Fly the case's training flight (duration s) and validation flight in fresh SITLs with its vehicle."""
+def sitl_flights(case: Case, out: Path, seed: int, duration: float,
+                 reuse: bool = False) -> tuple[Dataset, Dataset]:
+    """Fly the case's training flight (duration s) and validation flight in fresh SITLs with its vehicle
+    (reuse: read the flights a previous run left in `out` instead, when both are there)."""
     from quadsr.pipeline import GROUND_SITL, OPEN_LOOP_SITL, fly_excitation
 
     path = vehicle_file(case.sitl_vehicle or "")
@@ -152,7 +154,10 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float) -> tuple[Dat
     flights = ((case.profiles[0], duration, seed, "train"), (case.profiles[1], None, val_seed, "validate"))
     logs = []
     for profile, dur, s, role in flights:
-        tlog = out / f"{case.sitl_vehicle}-{role}.tlog"
+        tlog = out / f"{case.sitl_vehicle}-{role}-{dur or 0:g}s-seed{s}.tlog"
+        if reuse and tlog.exists() and tlog.stat().st_size > 0:
+            logs.append(load_dataset(tlog, targets=case.targets))
+            continue
         fly_excitation(profile, tlog, sitl_args=args, seed=s, duration=dur, vehicle=str(path),
                        log_path=out / f"sitl-{case.sitl_vehicle}-{role}.log")
         logs.append(load_dataset(tlog, targets=case.targets))
@@ -315,7 +320,7 @@ def case_data(case: Case, args: argparse.Namespace, out: Path):
     from bridge.vehicle import load_vehicle
 
     if case.sitl_vehicle is not None:
-        train, val = sitl_flights(case, out, args.seed, args.train_duration)
+        train, val = sitl_flights(case, out, args.seed, args.train_duration, args.reuse_flights)
         vehicle = flown_vehicle(case)
         return train, val, true_model(vehicle), true_body_expressions(vehicle), vehicle.gravity
     train = synthetic(case, args.rows, args.seed)
@@ -360,6 +365,8 @@ def main() -> int:
                     help="the discovery engine's genetic-programming generations per target")
     ap.add_argument("--train-duration", type=float, default=60.0, help="SITL training flight, s simulated")
     ap.add_argument("--out", default="results/discovery", help="folder for SITL flights and the table")
+    ap.add_argument("--reuse-flights", action="store_true",
+                    help="read the SITL flights a previous run left in --out (same seed and duration)")
     args = ap.parse_args()
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
     names = None if args.cases is None else [c.strip() for c in args.cases.split(",")]
