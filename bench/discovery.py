@@ -158,8 +158,10 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float,
         if reuse and tlog.exists() and tlog.stat().st_size > 0:
             logs.append(load_dataset(tlog, targets=case.targets))
             continue
+        # step_timeout as the SITL's own patience (--lockstep-timeout 30): a loaded machine stalls steps for
+        # over 1 s (a frame-drag flight was lost at 34.7 s with load 16 on 2 cores)
         fly_excitation(profile, tlog, sitl_args=args, seed=s, duration=dur, vehicle=str(path),
-                       log_path=out / f"sitl-{case.sitl_vehicle}-{role}.log")
+                       step_timeout=30.0, log_path=out / f"sitl-{case.sitl_vehicle}-{role}.log")
         logs.append(load_dataset(tlog, targets=case.targets))
     return logs[0], logs[1]
 
