@@ -7,7 +7,9 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
    best `screen` to the pool;
 3. sparsify the pool (STLSQ threshold sweep, backward elimination and forward selection, as the sparse
    engine: identification.sparse); every active set is a candidate; the held-out pick gives the residual;
-4. repeat 2-3 on the residual for `rounds` rounds (small effects surface once the large ones are fitted);
+4. repeat 2-3 on the residual, at most `rounds` rounds, until `patience` rounds in a row leave the picked
+   model no better on the held-out rows (small effects surface once the large ones are fitted; a round
+   that finds nothing new costs the next one, at most);
 5. genetic programming (pyoperon), seeded with the primitives and the picked model's features, fits the
    picked model's residual for a fixed number of generations (always: no threshold gates it); each front
    member added to the sparse model is one more candidate.
@@ -198,6 +200,7 @@ class DiscoveryEngine:
         seen: set[frozenset[int]] = set()
         residual = y.copy()
         best: Candidate | None = None
+        stale = 0  # rounds in a row whose pick is no better on the held-out rows
         for rnd in range(max(s.rounds, 1)):
             scores = _screen_scores(Z, residual)
             scores[pool] = -np.inf
@@ -213,10 +216,14 @@ class DiscoveryEngine:
             round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
-            best = select(candidates, _SELECTION, scale=scale)
+            previous, best = best, select(candidates, _SELECTION, scale=scale)
             residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
             if progress:
                 progress(0.7 * (rnd + 1) / max(s.rounds, 1), f"round {rnd + 1}: pool {len(pool)}")
+            stale = stale + 1 if previous is not None and not _better(best, previous, scale) else 0
+            if stale >= max(s.patience, 1):
+                break
+        self.stats["rounds"] = rnd + 1
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
         if best is not None and budget > 0:
@@ -398,6 +405,15 @@ class _Basis:
             return False
         self.q = np.hstack([self.q, (v / rest)[:, None]])
         return True
+
+
+def _better(new: Candidate, old: Candidate, scale: float, margin: float = 1e-3) -> bool:
+    """True when new's held-out loss is below old's by more than `margin` of it and more than rounding
+    (1e-9 of the held-out target's spread `scale`): a round that helped."""
+    a, b = new.holdout_loss, old.holdout_loss
+    if a is None or b is None or not np.isfinite(a):
+        return False
+    return not np.isfinite(b) or a < b * (1.0 - margin) - 1e-9 * scale
 
 
 def _standardized(F: np.ndarray) -> np.ndarray:

@@ -70,9 +70,10 @@ class DiscoverySettings:
     primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
     operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
-    screen: int = 40  # features added to the pool per round by sure independence screening
+    screen: int = 60  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3
-    rounds: int = 3  # screen -> sparsify -> residual rounds
+    rounds: int = 8  # at most this many screen -> sparsify -> residual rounds
+    patience: int = 2  # stop after this many rounds in a row without a better held-out pick (0 acts as 1)
     max_terms: int = 20  # forward-selection path length in the sparsifier; larger models are not kept
     thresholds: int = 12  # points of the sparsifier's STLSQ threshold sweep (at most sparse.thresholds)
     operon_population: int = 100  # genetic programming on the sparse model's residual, always run, for

@@ -15,6 +15,7 @@ tau = (k f2, k f3, Cm f4), k = sqrt(2)/2 d Ct. Euler's equations give wx' = (Jyy
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +23,7 @@ import numpy as np
 import sympy
 
 from bridge.vehicle import VehicleConfig, load_vehicle
+from identification.body_frame import PRIMITIVE_SYMBOLS
 from identification.kinematics import rotation_matrix_sym
 from identification.model_file import (
     SYMBOLS,
@@ -150,6 +152,35 @@ def airframe_expressions(vehicle: VehicleConfig) -> dict[str, sympy.Expr]:
     s = SYMBOLS
     rot = rotation_matrix_sym(s["phi"], s["theta"], s["psi"])
     ua = rot.T * sympy.Matrix([s["vx"], s["vy"], s["vz"]])
+    force, dw = _airframe_wrench(vehicle, ua, lambda r: -(s["z"] + (rot * r)[2]))
+    accel = sympy.Matrix([0, 0, _f(vehicle.gravity)]) + rot * force / _f(vehicle.mass)
+    return dict(zip(TARGET_NAMES, [*accel, *dw], strict=True))
+
+
+def true_body_expressions(vehicle: VehicleConfig | str | os.PathLike[str]) -> dict[str, sympy.Expr]:
+    """The SITL's equations in the body frame, in the primitive names of identification.body_frame.
+
+    fx fy fz: specific force FRD (m/s^2) = the aerodynamic and rotor force / m (gravity excluded);
+    dwx dwy dwz: FRD (rad/s^2). Variables: ub vb wb (body airspeed FRD, m/s, still air), wx wy wz (rad/s),
+    u1..u4 (rad/s), h = -z (m) and, only where a hub's height depends on the attitude (ground effect),
+    phi and theta (rad). Any vehicle (the paper's closed form is the same physics); wind excluded.
+    """
+    P = PRIMITIVE_SYMBOLS
+    if not isinstance(vehicle, VehicleConfig):
+        vehicle = load_vehicle(vehicle)
+    row = rotation_matrix_sym(P["phi"], P["theta"], sympy.Integer(0))[2, :]  # (R r)_z needs no yaw
+    ua = sympy.Matrix([P["ub"], P["vb"], P["wb"]])
+    force, dw = _airframe_wrench(vehicle, ua, lambda r: P["h"] - (row * r)[0])
+    fb = force / _f(vehicle.mass)
+    return dict(zip(("fx", "fy", "fz", "dwx", "dwy", "dwz"), [*fb, *dw], strict=True))
+
+
+def _airframe_wrench(
+    vehicle: VehicleConfig, ua: sympy.Matrix, hub_height: Callable[[sympy.Matrix], sympy.Expr]
+) -> tuple[sympy.Matrix, sympy.Matrix]:
+    """(force FRD N, angular acceleration FRD rad/s^2) of the airframe at body airspeed ua (m/s FRD);
+    hub_height(r) is the height (m) of the hub at r (FRD m from the CG)."""
+    s = SYMBOLS
     w = sympy.Matrix([s["wx"], s["wy"], s["wz"]])
     aero = vehicle.aero
     force = sympy.zeros(3, 1)
@@ -164,7 +195,7 @@ def airframe_expressions(vehicle: VehicleConfig) -> dict[str, sympy.Expr]:
         if aero.translational_lift:
             thrust = thrust + _f(aero.translational_lift) * (vi[0] ** 2 + vi[1] ** 2)
         if ground is not None:
-            h = _at_least(-(s["z"] + (rot * r)[2]), ground.min_height)
+            h = _at_least(hub_height(r), ground.min_height)
             thrust = thrust / (1 - _f((ground.rotor_radius / 4.0) ** 2) / h**2)
         f_i = sympy.Matrix([0, 0, -thrust])
         if aero.rotor_drag is not None:
@@ -184,9 +215,7 @@ def airframe_expressions(vehicle: VehicleConfig) -> dict[str, sympy.Expr]:
     jinv = sympy.Matrix(3, 3, lambda a, b: _f(np.linalg.inv(inertia)[a, b]))
     damping = sympy.Matrix([_f(d) for d in vehicle.drag.angular_damping])
     torque = moment - w.cross(jmat * w + sympy.Matrix([0, 0, hz])) - damping.multiply_elementwise(w)
-    accel = sympy.Matrix([0, 0, _f(vehicle.gravity)]) + rot * force / _f(vehicle.mass)
-    dw = jinv * torque
-    return dict(zip(TARGET_NAMES, [*accel, *dw], strict=True))
+    return force, jinv * torque
 
 
 def vehicle_provenance(vehicle: VehicleConfig) -> dict[str, Any]:

@@ -236,12 +236,23 @@ class TargetComparison:
 
 def compare_models(learned: Model, reference: Model) -> list[TargetComparison]:
     """Compare every target both models have, term by term."""
+    return compare_expressions(
+        {n: learned.targets[n].expression for n in learned.target_names},
+        {n: t.expression for n, t in reference.targets.items()},
+    )
+
+
+def compare_expressions(
+    learned: dict[str, sympy.Expr], reference: dict[str, sympy.Expr]
+) -> list[TargetComparison]:
+    """Compare every target both mappings have, monomial by monomial (any variable names: the 16 variables,
+    or the body-frame primitives, where frame drag's |v| v is one monomial and not its NED expansion)."""
     out = []
-    for name in learned.target_names:
-        if name not in reference.targets:
+    for name, expr in learned.items():
+        if name not in reference:
             continue
-        got = expression_terms(learned.targets[name].expression)
-        ref = expression_terms(reference.targets[name].expression)
+        got = expression_terms(expr)
+        ref = expression_terms(reference[name])
         keys = list(ref) + [k for k in got if k not in ref]
         rows = [TermRow(name, expression_to_string(k), ref.get(k), got.get(k)) for k in keys]
         out.append(TargetComparison(name, rows))

@@ -116,3 +116,18 @@ def test_unknown_primitive_or_operator_is_a_user_error():
         DiscoveryEngine(DiscoverySettings(primitives=("ub", "airspeed")))
     with pytest.raises(UserError, match="unknown operator 'exp'"):
         DiscoveryEngine(DiscoverySettings(operators=("mul", "exp")))
+
+
+def test_rounds_stop_once_the_pick_stops_improving_and_more_rounds_change_nothing_exact():
+    # exact data: a round or two reach the true dwz; `patience` rounds without a better held-out pick end the
+    # search (counts, not time), long before the `rounds` cap; a larger patience runs more rounds for nothing
+    truth = body_expressions(VEHICLE, Effects())["dwz"]
+    picks, rounds = [], []
+    for patience in (1, 8):
+        settings = DiscoverySettings(rounds=8, patience=patience, screen=20)
+        best, engine, _, _ = _fit(Effects(), "dwz", seed=4, n=800, settings=settings, budget=0)
+        _assert_same_terms(best.expression, truth)
+        picks.append(str(best.expression))
+        rounds.append(engine.stats["rounds"])
+    assert rounds[0] <= 3 and rounds[1] > rounds[0]
+    assert picks[0] == picks[1]
