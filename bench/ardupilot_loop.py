@@ -301,7 +301,8 @@ def main() -> int:
     parser.add_argument("--out", default=None)
     parser.add_argument("--px4-out", default=None,
                         help="a bench/px4_loop.py --out folder: its Case I/II through PX4 in the table")
-    parser.add_argument("--budget", type=int, default=30, help="identification budget: genetic-programming generations per target")
+    parser.add_argument("--budget", type=int, default=30,
+                        help="identification budget: genetic-programming generations per target")
     args = parser.parse_args()
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="ardupilot-loop-"))
     out.mkdir(parents=True, exist_ok=True)

@@ -33,6 +33,7 @@ class Candidate:
     # how well the fit rows identify its terms: the weakest term's t ratio (collinearity.weakest_t);
     # None: not measured (an engine whose candidates are not linear in their terms)
     weakest_t: float | None = None
+    largest_vif: float | None = None  # the largest variance inflation factor of its terms on the fit rows
 
     def evaluate(self, X: np.ndarray) -> np.ndarray:
         """The candidate's prediction on X (N,16), in the target's unit."""

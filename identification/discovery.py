@@ -33,7 +33,7 @@ import sympy
 from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
-from identification.collinearity import weakest_t
+from identification.collinearity import term_identification
 from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import OPERATORS, FeatureSpace, grow_products, grow_unary
 from identification.library import Feature
@@ -297,7 +297,7 @@ class DiscoveryEngine:
                     predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
                 )
             )
-            out[-1].weakest_t = weakest_t(theta[:, idx], y)
+            out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
         return out
 
     def _operon(
@@ -376,7 +376,8 @@ class DiscoveryEngine:
                 )
             )
             shapes = _term_shapes(expr)  # every additive term of the sum with its own coefficient
-            out[-1].weakest_t = weakest_t(_lambdify(prims, shapes)(P), y) if shapes else None
+            if shapes:
+                out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
         return out
 
 

@@ -92,6 +92,8 @@ class SelectionSettings:
     # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t) is not
     # identified by the flight, and not picked while an identified one exists (pareto.select)
     min_t: float = 5.0
+    # nor is one whose terms the flight barely separates: a term with a VIF above max_vif on the fit rows
+    max_vif: float = 100.0
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,8 @@ rel_tol (2%) lets a simpler model win when extra terms only fit noise; abs_tol (
 spread) treats differences at rounding level as equal on noise-free data.
 Before that, candidates the flight does not identify are set aside: those with a term whose t ratio on
 the fit rows (coefficient over its standard error, inflated by the term's VIF) is below `min_t`
-(identification.collinearity.weakest_t; measured by the engines that can, else None), as long as one
+(identification.collinearity.term_identification; measured by the engines that can, else None), or a
+term whose VIF there is above `max_vif` (the flight barely separates it from the others), as long as one
 candidate that passes exists. On closed-loop data the regressors are collinear and a model of tied
 terms with cancelling coefficients can have the lowest pick loss by fitting the targets' errors; it is not
 a model of the vehicle, and a controller derived from it can crash.
@@ -82,7 +83,8 @@ def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: 
 
 def _identified(c: Candidate, settings: SelectionSettings) -> bool:
     """False when the fit rows do not identify the candidate's terms (module docstring)."""
-    return c.weakest_t is None or c.weakest_t >= settings.min_t
+    t_ok = c.weakest_t is None or c.weakest_t >= settings.min_t
+    return t_ok and (c.largest_vif is None or c.largest_vif <= settings.max_vif)
 
 
 def front_points(candidates: Sequence[Candidate], chosen: Candidate | None = None) -> list[ParetoPoint]:

@@ -7,7 +7,7 @@ import pytest
 import sympy
 
 from identification.candidate import Candidate
-from identification.collinearity import weakest_t
+from identification.collinearity import term_identification, weakest_t
 from identification.engine_settings import SelectionSettings
 from identification.pareto import select
 
@@ -56,6 +56,26 @@ def test_the_pick_sets_aside_unidentified_candidates_while_one_passes():
     assert select([tied], settings) is tied  # nothing passes: the pick falls back to every candidate
     looser = SelectionSettings(min_t=0.1)
     assert select([tied, sound], looser) is tied
+
+
+def test_the_pick_sets_aside_terms_the_flight_barely_separates():
+    # noise-free closed loop: a signed rotor combination written as three tied terms fits (t ~1e9) but the
+    # flight hardly separates them (VIF above max_vif); a candidate of separable terms is picked instead
+    settings = SelectionSettings()
+    tied = _candidate(30, 0.010, 1e9)
+    tied.largest_vif = 101.5
+    sound = _candidate(12, 0.013, 1e9)
+    sound.largest_vif = 4.0
+    assert select([tied, sound], settings) is sound
+    assert select([tied, sound], SelectionSettings(max_vif=1000.0)) is tied
+
+
+def test_term_identification_reports_the_largest_vif():
+    a, b, twin, y = _rows(4)
+    t, vif = term_identification(np.column_stack([a, b]), y)
+    t_tied, vif_tied = term_identification(np.column_stack([a, b, twin]), y)
+    assert vif < 2.0 < 100.0 < vif_tied
+    assert t == weakest_t(np.column_stack([a, b]), y)
 
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
