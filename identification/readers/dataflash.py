@@ -41,13 +41,12 @@ import numpy as np
 from bridge.errors import UserError
 from bridge.geodesy import flat_earth_ned
 from identification.motor_model import ThrustCurve
-from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_imu, uniform_timeline
 from identification.readers.ardupilot_mixer import INPUTS, fit_mixer, loop_rate_outputs
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
     SensorTargetSettings,
-    contiguous_runs,
     nominal_step,
     sensor_targets,
     stream_derivative,
@@ -237,25 +236,6 @@ def _loop_rate_motors(s_thr: Stream, rate: list[Any], params: dict[str, float], 
     return Stream("RATE mixer", rate_t, loop_rate_outputs(fit, rate_t, inputs, now, params))
 
 
-def _uniform_imu(t: np.ndarray, values: np.ndarray, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """IMU samples (times s, values) on a uniform grid when their times jitter (a 400 Hz loop on a 1 ms
-    simulator clock logs at 2 and 3 ms spacings, which no fixed-step differentiator spans): linearly
-    interpolated at their mean spacing, NaN across gaps; unchanged when already uniform."""
-    step = nominal_step(t)
-    if len(t) < 3 or len(contiguous_runs(t, step)) <= 1 + len(t) // 1000:
-        return t, values
-    stream = Stream("IMU", t, values)
-    spacing = np.diff(stream.t)
-    mean = float(np.mean(spacing[spacing <= stream.max_gap]))
-    grid = uniform_timeline([stream], 1.0 / mean)
-    out, ok = stream.resample(grid)
-    out[~ok] = np.nan
-    jitter = f"{spacing.min() * 1e3:.1f}-{np.percentile(spacing, 99) * 1e3:.1f}"
-    notes.append(f"IMU times jitter (spacings {jitter} ms): resampled to a uniform {1.0 / mean:.0f} Hz "
-                 "before differentiating")
-    return grid, out
-
-
 def _aux_streams(msgs: dict[str, list[Any]], imu: list[Any], path: Path) -> dict[str, Stream]:
     """Side columns for segmentation and the motor model: armed (EV, ARM), voltage (BAT), accel_dev (IMU).
 
@@ -377,7 +357,7 @@ def read_dataflash_dataset(
             _need(msgs, "IMU", path, "the 'sensors' targets")
         cols = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
         raw = np.column_stack([_field(imu, c, path) for c in cols])
-        ti, imu_values = _uniform_imu(_times(imu, path), raw, notes)
+        ti, imu_values = uniform_imu(_times(imu, path), raw, notes)
         acc, gyro = imu_values[:, :3], imu_values[:, 3:]
         euler, ok = s_att.resample(ti)
         euler[~ok] = np.nan

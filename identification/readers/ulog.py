@@ -38,7 +38,15 @@ from scipy.ndimage import maximum_filter1d
 from bridge.errors import UserError
 from bridge.rotations import euler_from_quaternions
 from identification.motor_model import ThrustCurve
-from identification.readers import RotorModel, RowFilter, Stream, make_dataset, rotor_model, uniform_timeline
+from identification.readers import (
+    RotorModel,
+    RowFilter,
+    Stream,
+    make_dataset,
+    rotor_model,
+    uniform_imu,
+    uniform_timeline,
+)
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
@@ -471,6 +479,8 @@ def _sensor_target_stream(
             ts = (sc["timestamp"].astype(np.int64) - np.int64(topics.t0)) * 1e-6
     gyro = _Topics.columns(sc, [f"gyro_rad[{i}]" for i in range(3)], "sensor_combined", topics.path)
     acc = _Topics.columns(sc, [f"accelerometer_m_s2[{i}]" for i in range(3)], "sensor_combined", topics.path)
+    ts, imu = uniform_imu(ts, np.hstack([acc, gyro]), notes)
+    acc, gyro = imu[:, :3], imu[:, 3:]
     q, ok = s_att.resample(ts)
     euler = euler_from_quaternions(np.where(ok[:, None], q, np.nan))
     g = STANDARD_GRAVITY if gravity is None else float(gravity)
