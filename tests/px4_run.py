@@ -114,15 +114,17 @@ class Gcs:
 
     def run_until(self, done, sim_s: float, wall_timeout: float = 120.0) -> None:
         """Read messages until done(self) is true; fails after sim_s of simulated time (or the wall bound)."""
-        start = None  # PX4's clock at the first message read here (not older news)
+        # PX4's clock at the first message read here that carries it: self.sim_ms may be older news (a message
+        # without time_boot_ms first, e.g. SERVO_OUTPUT_RAW, would start the count from a stale clock)
+        start = None
         deadline = time.monotonic() + wall_timeout
         seen: dict[str, int] = {}
         while not done(self):
             msg = self.recv(0.5)
             if msg is not None:
                 seen[msg.get_type()] = seen.get(msg.get_type(), 0) + 1
-                if start is None:
-                    start = self.sim_ms
+                if start is None and hasattr(msg, "time_boot_ms"):
+                    start = msg.time_boot_ms
             if (start is not None and self.sim_ms - start > sim_s * 1000.0) or time.monotonic() > deadline:
                 raise AssertionError(f"not done within {sim_s} s simulated (or {wall_timeout} s wall); "
                                      f"position {self.position}, armed {self.armed}, mode "

@@ -9,6 +9,7 @@ companion run answers from PX4's offboard remote port 14540+N (PX4 keeps its fir
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -72,6 +73,17 @@ def started(proc: subprocess.Popen) -> str:
     return head
 
 
+@contextlib.contextmanager
+def companion_killed_on_failure(proc: subprocess.Popen, head: str):
+    """On a failed wait the companion is killed (it would hold PX4's offboard port for the next test) and its
+    output joins the failure."""
+    try:
+        yield
+    except AssertionError as exc:
+        proc.kill()
+        raise AssertionError(f"{exc}\nquadsr fly said:\n{head}{proc.communicate()[0]}") from None
+
+
 def test_case2_through_px4_offboard(px4_rt, tmp_path):
     run, gcs, work, model, port = px4_rt
     proc = fly(work, model, port, tmp_path / "case2")
@@ -107,12 +119,13 @@ def test_offboard_loss_failsafe_ends_the_flight_with_a_clear_message(px4_rt, tmp
     proc = fly(work, model, port, tmp_path / "loss", hold, 60)
     head = started(proc)
     gcs.drain()
-    gcs.run_until(in_offboard, sim_s=30.0)
-    os.kill(proc.pid, signal.SIGSTOP)  # the companion freezes: no more setpoints
-    try:
-        gcs.run_until(lambda g: not in_offboard(g), sim_s=10.0)
-    finally:
-        os.kill(proc.pid, signal.SIGCONT)
+    with companion_killed_on_failure(proc, head):
+        gcs.run_until(in_offboard, sim_s=30.0)
+        os.kill(proc.pid, signal.SIGSTOP)  # the companion freezes: no more setpoints
+        try:
+            gcs.run_until(lambda g: not in_offboard(g), sim_s=10.0)
+        finally:
+            os.kill(proc.pid, signal.SIGCONT)
     output = head + proc.communicate(timeout=60)[0]
     assert proc.returncode == 4, output
     # the companion sees PX4 leave OFFBOARD, or (its queue overflowed while frozen) that its setpoints
@@ -130,12 +143,9 @@ def test_disarm_ends_the_flight_with_a_clear_message(px4_rt, tmp_path):
     proc = fly(work, model, port, tmp_path / "disarm", hold, 60)
     head = started(proc)
     gcs.drain()
-    try:
+    with companion_killed_on_failure(proc, head):
         gcs.run_until(lambda g: in_offboard(g) and g.armed, sim_s=30.0)
         gcs.run_until(lambda g: g.position[2] < -0.5, sim_s=20.0)
-    except AssertionError as exc:
-        proc.kill()
-        raise AssertionError(f"{exc}\nquadsr fly said:\n{head}{proc.communicate()[0]}") from None
     assert gcs.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == mav.MAV_RESULT_ACCEPTED  # forced
     output = head + proc.communicate(timeout=60)[0]
     assert proc.returncode == 4, output
