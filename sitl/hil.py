@@ -61,6 +61,7 @@ ACCEL_LIMIT = messages.ACCEL_LIMIT
 GYRO_LIMIT = messages.GYRO_LIMIT
 MG_PER_M_S2 = 1000.0 / messages.G0
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+LAT_E7_MAX, LON_E7_MAX = 900_000_000, 1_800_000_000  # degE7
 
 
 def int16_of(v: float) -> int:
@@ -92,12 +93,12 @@ def int32_of(v: float, lo: int, hi: int) -> int:
 
 def lat_e7(deg: float) -> int:
     """Latitude in deg to the degE7 int of MAVLink."""
-    return int32_of(deg * 1e7, -900000000, 900000000)
+    return int32_of(deg * 1e7, -LAT_E7_MAX, LAT_E7_MAX)
 
 
 def lon_e7(deg: float) -> int:
     """Longitude in deg to the degE7 int of MAVLink."""
-    return int32_of(deg * 1e7, -1800000000, 1800000000)
+    return int32_of(deg * 1e7, -LON_E7_MAX, LON_E7_MAX)
 
 
 def kind(cls: type) -> tuple[bytes, bytes, Callable[..., bytes]]:
@@ -155,27 +156,23 @@ class HilEncoder:
     def step_frames(self, quad: Quadrotor, s: SensorFrame) -> list[bytes]:
         """The frames of the current step, HIL_SENSOR last; all stamped with the step's time_usec."""
         t = quad.time_usec
-        x, y, z = quad.position
-        vx, vy, vz = quad.velocity
-        qw, qx, qy, qz = quad.quaternion
-        p, q, r = quad.rates
+        x, y, z, vx, vy, vz, qw, qx, qy, qz, p, q, r, w1, w2, w3, w4 = quad.state  # one read of 17 floats
         lat, lon, alt = self.frame.to_geodetic(x, y, z)
         fx, fy, fz = quad.specific_force_body()
-        speed = 100.0 * math.sqrt(vx * vx + vy * vy + vz * vz)
+        speed = uint16_of(100.0 * math.sqrt(vx * vx + vy * vy + vz * vz))  # cm/s over ground: both airspeeds
         msg_id, extra, pack = self._hsq
         parts = [
             (msg_id, extra, pack(
                 t, qw, qx, qy, qz, p, q, r,
-                lat_e7(lat), lon_e7(lon), int32_of(alt * 1000.0, INT32_MIN, INT32_MAX),
-                int16_of(vx * 100.0), int16_of(vy * 100.0), int16_of(vz * 100.0), uint16_of(speed),
-                uint16_of(speed),
+                int32_of(lat * 1e7, -LAT_E7_MAX, LAT_E7_MAX), int32_of(lon * 1e7, -LON_E7_MAX, LON_E7_MAX),
+                int32_of(alt * 1000.0, INT32_MIN, INT32_MAX),
+                int16_of(vx * 100.0), int16_of(vy * 100.0), int16_of(vz * 100.0), speed, speed,
                 int16_of(fx * MG_PER_M_S2), int16_of(fy * MG_PER_M_S2), int16_of(fz * MG_PER_M_S2),
             )),
         ]
         msg_id, extra, pack = self._lpn
         parts.append((msg_id, extra, pack((t // 1000) & 0xFFFFFFFF, x, y, z, vx, vy, vz)))
         msg_id, extra, pack = self._rpm
-        w1, w2, w3, w4 = quad.rotor_speeds
         parts.append((msg_id, extra, pack(w1 * RAD_S_TO_RPM, 0)))
         parts.append((msg_id, extra, pack(w2 * RAD_S_TO_RPM, 1)))
         parts.append((msg_id, extra, pack(w3 * RAD_S_TO_RPM, 2)))
