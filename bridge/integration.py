@@ -2,6 +2,10 @@
 
 Plain floats, not numpy: the SITL takes four of these steps per 4 ms exchange, thousands of exchanges per wall
 second, and numpy is slower than lists for 17 numbers. Units are whatever the derivative's are (SI here).
+
+For each state length the step is generated once as straight-line code (every state element its own local
+variable, no zip or comprehension): about twice as fast as comprehensions over zip() for the SITL's 17
+floats, with the same operations in the same order, so the results are bit-identical.
 """
 
 from __future__ import annotations
@@ -9,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 Derivative = Callable[[Sequence[float], Sequence[float]], Sequence[float]]
+Stepper = Callable[[Derivative, Sequence[float], Sequence[float], float, Sequence[float] | None], list[float]]
+_STEPPERS: dict[int, Stepper] = {}
 
 
 def rk4_step(f: Derivative, s: Sequence[float], u: Sequence[float], h: float,
@@ -17,12 +23,36 @@ def rk4_step(f: Derivative, s: Sequence[float], u: Sequence[float], h: float,
 
     k1: f(s, u) when the caller already has it (it is then not evaluated again).
     """
-    hh = 0.5 * h
-    if k1 is None:
-        k1 = f(s, u)
-    # zip without strict=: all have the state's length by construction, and strict= doubles the cost here
-    k2 = f([a + hh * b for a, b in zip(s, k1)], u)  # noqa: B905
-    k3 = f([a + hh * b for a, b in zip(s, k2)], u)  # noqa: B905
-    k4 = f([a + h * b for a, b in zip(s, k3)], u)  # noqa: B905
-    h6 = h / 6.0
-    return [a + h6 * (b + 2.0 * (c + d) + e) for a, b, c, d, e in zip(s, k1, k2, k3, k4)]  # noqa: B905
+    stepper = _STEPPERS.get(len(s))
+    if stepper is None:
+        stepper = _STEPPERS[len(s)] = _unrolled_rk4(len(s))
+    return stepper(f, s, u, h, k1)
+
+
+def _unrolled_rk4(n: int) -> Stepper:
+    """The RK4 step for states of n floats as straight-line code (see the module docstring)."""
+    idx = range(n)
+
+    def names(p: str) -> str:
+        return ", ".join(f"{p}{i}" for i in idx) + ("," if n == 1 else "")
+
+    def stage(p: str, step: str) -> str:
+        return "[" + ", ".join(f"s{i} + {step} * {p}{i}" for i in idx) + "]"
+
+    final = "[" + ", ".join(f"s{i} + h6 * (a{i} + 2.0 * (b{i} + c{i}) + d{i})" for i in idx) + "]"
+    source = (
+        "def rk4(f, s, u, h, k1):\n"
+        "    hh = 0.5 * h\n"
+        "    if k1 is None:\n"
+        "        k1 = f(s, u)\n"
+        f"    {names('s')} = s\n"
+        f"    {names('a')} = k1\n"
+        f"    {names('b')} = f({stage('a', 'hh')}, u)\n"
+        f"    {names('c')} = f({stage('b', 'hh')}, u)\n"
+        f"    {names('d')} = f({stage('c', 'h')}, u)\n"
+        "    h6 = h / 6.0\n"
+        f"    return {final}\n"
+    )
+    namespace: dict = {}
+    exec(source, namespace)  # noqa: S102 - generated from the state length only
+    return namespace["rk4"]

@@ -7,6 +7,7 @@ import errno
 import re
 import select
 import socket
+import struct
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -22,6 +23,10 @@ ENDPOINT_FORM = "udp:HOST:PORT (e.g. udp:127.0.0.1:4560; udpin:/udpout: also acc
 _ENDPOINT_RE = re.compile(r"^(udp|udpin|udpout)(?:://|:)(\[[^\]]+\]|[^:\s]*):(\d+)$")
 MAX_DATAGRAM = 65535
 _DONTWAIT = socket.MSG_DONTWAIT
+# Waits at least this long (s) block in recvfrom under SO_RCVTIMEO; shorter ones poll() first, as the kernel
+# rounds SO_RCVTIMEO up to its tick (4 ms at HZ=250), too coarse for the real-time pacing's sub-step waits.
+RCVTIMEO_MIN_S = 0.05
+_TIMEVAL = struct.Struct("@ll")  # struct timeval (tv_sec, tv_usec) on LP64 Linux
 
 
 @dataclass(frozen=True)
@@ -123,11 +128,13 @@ class UdpLink:
             where = str(local) if local is not None else "a free local UDP port"
             raise UserError(f"cannot listen on {where}: {exc.strerror}", hint=bind_hint(exc.errno)) from None
         self.local = Endpoint(*self._sock.getsockname()[:2])
-        # The socket stays in blocking mode with no Python timeout: waits go through one poll() and every
-        # recvfrom/sendto is a single MSG_DONTWAIT syscall (a socket timeout would add a poll() before each
-        # send and receive, and settimeout() an ioctl: per lockstep step, 5 syscalls instead of 3).
+        # The socket stays in blocking mode with no Python timeout (which would add a poll() before each send
+        # and receive). A wait of RCVTIMEO_MIN_S or more is ONE blocking recvfrom bounded by the kernel's
+        # SO_RCVTIMEO (set again only when the wait changes: the lockstep loops wait the same every step);
+        # a shorter one is a poll() then a MSG_DONTWAIT recvfrom. Every sendto is one MSG_DONTWAIT syscall.
         self._poller = select.poll()
         self._poller.register(self._sock.fileno(), select.POLLIN)
+        self._rcvtimeo = 0.0  # s, the socket's SO_RCVTIMEO (0: none)
         self._owns_tlog = tlog is not None and not isinstance(tlog, TlogWriter)
         try:
             self.tlog = open_tlog(tlog)
@@ -185,13 +192,23 @@ class UdpLink:
     # -- receiving -----------------------------------------------------------------------------------
     def _datagram(self, timeout: float | None) -> tuple[bytes, tuple[str, int]] | None:
         try:
-            if timeout is None:
-                return self._sock.recvfrom(MAX_DATAGRAM)
+            if timeout is None or timeout >= RCVTIMEO_MIN_S:
+                limit = 0.0 if timeout is None else timeout
+                if limit != self._rcvtimeo:
+                    self._set_rcvtimeo(limit)
+                return self._sock.recvfrom(MAX_DATAGRAM)  # EAGAIN (BlockingIOError) when the limit passes
             if timeout > 0.0 and not self._poller.poll(timeout * 1000.0):
                 return None
             return self._sock.recvfrom(MAX_DATAGRAM, _DONTWAIT)
         except (BlockingIOError, ConnectionError):  # ConnectionError: an ICMP unreachable came back
             return None
+
+    def _set_rcvtimeo(self, seconds: float) -> None:
+        """Bound a blocking recvfrom to seconds (0: no bound), as the kernel's SO_RCVTIMEO (a timeval)."""
+        whole = int(seconds)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO,
+                              _TIMEVAL.pack(whole, int((seconds - whole) * 1e6)))
+        self._rcvtimeo = seconds
 
     def recv(self, timeout: float | None = 0.0) -> list[Any]:
         """Messages of ONE datagram, waiting up to timeout s (0: don't wait, None: forever); [] if none.
