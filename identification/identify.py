@@ -363,7 +363,7 @@ def _excitation(
         f"anti-damping, has a pick {loss} loss below the constant's {const_loss:.3g} by "
         f"{settings.selection.min_gain:.0%} (best {best:.3g}); what the candidates fit is noise or an "
         f"artefact, so {name} gets the minimal physical model (terms {terms}){composed}: "
-        f"{expression_to_string(minimal.expression)}"
+        f"{expression_to_string(minimal.expression.evalf(3))} (3 significant digits)"
     )
     record = {
         "constant_pick_loss": const_loss,
