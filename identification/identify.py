@@ -2,6 +2,11 @@
 the pick rows, report validation on rows used for neither (identification.data_roles), check how well the
 flight identifies each chosen term (identification.collinearity) and flag targets below an R^2 threshold.
 
+The physics-only candidates (identification.physics_candidates) join the engine's before the pick, every
+candidate's self-feedback is measured (identification.self_feedback: anti-damping is set aside by the
+pick), and a target the flight does not excite (identification.pareto.excited) gets the minimal physical
+model with a flag (engine.flags, checks.not_excited).
+
 Losses: 'absolute' (MAE, the paper's fitness) or 'squared' (RMSE), in the target's unit. The pick rule is
 identification.pareto's. The budget is an iteration count (genetic-programming generations per target), so
 the same data, settings and seed give the same model on any machine.
