@@ -131,3 +131,22 @@ def test_a_target_the_flight_does_not_excite_gets_the_minimal_physical_model_and
     physics = fit_terms(("1", "f1"), X[fit_rows], fb[fit_rows, 2], "absolute")
     attach_holdout([physics], X[rows], fb[rows, 2], "absolute")
     assert fz.metrics["pick"]["mae"] <= physics.holdout_loss * 1.02 + 1e-4 * np.std(fb[rows, 2])
+
+
+def test_rate_noise_with_its_differentiation_artefact_gives_no_anti_damping_model():
+    """A hover log's rates are noise and its rate derivative a difference of them (PX4's xyz_derivative on
+    px4_sitl_quad_takeoff.ulg: +52 1/s against wx): the sparse engine's library holds wx, and the pick
+    must neither keep the +1/dt artefact nor fit noise: dwx is flagged not excited, its model a constant."""
+    n = 1200
+    xi, u = _hover_rows(n, seed=7)
+    w = xi[:, 9]
+    dwx = (w - np.roll(w, 1)) / DT
+    dwx[0] = dwx[1]
+    data = Dataset(t=np.arange(n) * DT, xi=xi, u=u, targets=np.column_stack([np.zeros((n, 3)), dwx,
+                   np.zeros((n, 2))]), source="rate-noise", format="arrays", target_source="truth")
+    model = identify(data, engine="sparse", targets=["dwx"], progress=False)
+    assert set(model.extra["checks"]["not_excited"]) == {"dwx"}
+    expr = model.targets["dwx"].expression
+    assert expr.is_number, expr
+    plain = fit_terms(("1", "wx"), np.hstack([xi, u]), dwx, "squared")
+    assert "wx" in str(plain.expression) and plain.weakest_t > 5  # the artefact is there to be fitted
