@@ -42,9 +42,10 @@ from identification.collinearity import (
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
+from identification.equation_form import equation_text
 from identification.library import build_library, feature_matrix
 from identification.metrics import LOSSES, table_metrics, weak_metrics
-from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel, expression_to_string
+from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel
 from identification.pareto import admissible, attach_holdout, excited, front_points, select
 from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
 from identification.self_feedback import mark_self_feedback
@@ -368,7 +369,8 @@ def _excitation(
         f"anti-damping, has a pick {loss} loss below the constant's {const_loss:.3g} by "
         f"{settings.selection.min_gain:.0%} (best {best:.3g}); what the candidates fit is noise or an "
         f"artefact, so {name} gets the minimal physical model (terms {terms}){composed}: "
-        f"{expression_to_string(minimal.expression.evalf(3))} (3 significant digits)"
+        + " ".join(text for _, text in equation_text(name, minimal.expression)).lstrip("+ ")
+        + " (3 significant digits)"
     )
     record = {
         "constant_pick_loss": const_loss,
