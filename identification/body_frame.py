@@ -18,6 +18,8 @@ counting as dimensionless (PhySO-style unit vectors):
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -103,6 +105,26 @@ def primitive_matrix(X: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     vb = np.einsum("nji,nj->ni", rot, X[:, 3:6])  # R^T v
     derived = {"ub": vb[:, 0], "vb": vb[:, 1], "wb": vb[:, 2], "h": -X[:, col["z"]]}
     return np.column_stack([derived[n] if n in derived else X[:, col[n]] for n in names])
+
+
+_DERIVED = ("ub", "vb", "wb", "h")  # the primitives that are not among the 16 variables
+
+
+@functools.lru_cache(maxsize=4096)
+def _compiled(expr: sympy.Expr) -> Callable[..., Any]:
+    """One expression lambdified over the 16 variables and the derived primitives (cached: candidates of
+    one target share many terms)."""
+    args = [SYMBOLS[n] for n in VARIABLE_NAMES] + [PRIMITIVE_SYMBOLS[n] for n in _DERIVED]
+    return sympy.lambdify(args, expr, modules="numpy")
+
+
+def expression_columns(exprs: Sequence[sympy.Expr], X: np.ndarray) -> np.ndarray:
+    """Expressions in the 16 variables and/or the primitive names evaluated on X (N,16): (N, len(exprs))."""
+    X = np.asarray(X, dtype=float)
+    values = [*X.T, *primitive_matrix(X, _DERIVED).T]
+    with np.errstate(all="ignore"):
+        cols = [_compiled(e)(*values) for e in exprs]
+    return np.column_stack([np.broadcast_to(np.asarray(c, float), (len(X),)) for c in cols])
 
 
 def to_variables(expr: sympy.Expr) -> sympy.Expr:

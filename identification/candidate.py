@@ -34,6 +34,10 @@ class Candidate:
     # None: not measured (an engine whose candidates are not linear in their terms)
     weakest_t: float | None = None
     largest_vif: float | None = None  # the largest variance inflation factor of its terms on the fit rows
+    # mean d(target)/d(own state) on the fit rows (1/s) and its standard error (identification.self_feedback);
+    # None: not measured; the error only for a positive slope
+    self_feedback: float | None = None
+    self_feedback_se: float | None = None
 
     def evaluate(self, X: np.ndarray) -> np.ndarray:
         """The candidate's prediction on X (N,16), in the target's unit."""

@@ -264,10 +264,7 @@ def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, floa
     largest_vif = float(np.max(vif)) if len(vif) else 1.0
     if s == 0.0:
         return (float("inf") if np.all(c > 0) else 0.0), largest_vif
-    d = resid - resid.mean()
-    den = float(d @ d)
-    rho = float(np.clip((d[:-1] @ d[1:]) / den, 0.0, 0.999)) if den > 0 else 0.0
-    n_eff = max(len(y) * (1.0 - rho) / (1.0 + rho), 1.0)
+    n_eff = effective_rows(resid)
     with np.errstate(all="ignore"):
         t = c / (s * np.sqrt(vif) / np.sqrt(n_eff))
     return float(np.nan_to_num(t, nan=0.0).min()), largest_vif
@@ -292,3 +289,23 @@ def describe(target: str, c: Collinearity) -> list[str]:
     if lines:
         lines.append(f"  to separate them: {c.advice()}")
     return lines
+
+
+def effective_rows(resid: np.ndarray) -> float:
+    """The effective number of independent rows of a flight's residual (N,): N (1 - rho) / (1 + rho), rho
+    its lag-1 autocorrelation (an AR(1) residual's effective sample size; term_identification), at least 1."""
+    d = np.asarray(resid, dtype=float) - float(np.mean(resid))
+    den = float(d @ d)
+    rho = float(np.clip((d[:-1] @ d[1:]) / den, 0.0, 0.999)) if den > 0 else 0.0
+    return max(len(d) * (1.0 - rho) / (1.0 + rho), 1.0)
+
+
+def term_shapes(expr: sympy.Expr) -> list[sympy.Expr]:
+    """The distinct additive terms of an expression (nested sums flattened), coefficients dropped (a
+    constant term gives the shape 1)."""
+    out: list[sympy.Expr] = []
+    for term in sympy.Add.make_args(sympy.Add(*sympy.Add.make_args(expr))):  # flatten unevaluated sums
+        _, shape = term.as_coeff_Mul()
+        if shape not in out:
+            out.append(shape)
+    return out

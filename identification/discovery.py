@@ -33,7 +33,7 @@ import sympy
 from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
-from identification.collinearity import term_identification
+from identification.collinearity import term_identification, term_shapes
 from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import OPERATORS, FeatureSpace, grow_products, grow_unary
 from identification.library import Feature
@@ -375,7 +375,7 @@ class DiscoveryEngine:
                     predict=predict,
                 )
             )
-            shapes = _term_shapes(expr)  # every additive term of the sum with its own coefficient
+            shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
             if shapes:
                 out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
         return out
@@ -445,16 +445,6 @@ def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:
             feature = sympy.Mul(*factors)
             if feature not in out:
                 out.append(feature)
-    return out
-
-
-def _term_shapes(expr: sympy.Expr) -> list[sympy.Expr]:
-    """The distinct additive terms of an expression (nested sums flattened), coefficients dropped."""
-    out: list[sympy.Expr] = []
-    for term in sympy.Add.make_args(sympy.Add(*sympy.Add.make_args(expr))):  # flatten unevaluated sums
-        _, shape = term.as_coeff_Mul()
-        if shape not in out:
-            out.append(shape)
     return out
 
 

@@ -94,6 +94,12 @@ class SelectionSettings:
     min_t: float = 5.0
     # nor is one whose terms the flight barely separates: a term with a VIF above max_vif on the fit rows
     max_vif: float = 100.0
+    # nor is one whose self-feedback (d target / d own state, identification.self_feedback) is positive
+    # beyond this many standard errors: anti-damping
+    max_self_feedback_t: float = 1.0
+    # a target is not excited by the flight when no candidate that passes these rules has a pick loss below
+    # the constant model's by this fraction: it gets the minimal physical model (physics_candidates)
+    min_gain: float = 0.05
 
 
 @dataclass(frozen=True)

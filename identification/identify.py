@@ -2,6 +2,11 @@
 the pick rows, report validation on rows used for neither (identification.data_roles), check how well the
 flight identifies each chosen term (identification.collinearity) and flag targets below an R^2 threshold.
 
+The physics-only candidates (identification.physics_candidates) join the engine's before the pick, every
+candidate's self-feedback is measured (identification.self_feedback: anti-damping is set aside by the
+pick), and a target the flight does not excite (identification.pareto.excited) gets the minimal physical
+model with a flag (engine.flags, checks.not_excited).
+
 Losses: 'absolute' (MAE, the paper's fitness) or 'squared' (RMSE), in the target's unit. The pick rule is
 identification.pareto's. The budget is an iteration count (genetic-programming generations per target), so
 the same data, settings and seed give the same model on any machine.
@@ -26,6 +31,7 @@ from identification.body_frame import (
     primitive_info,
     to_variables,
 )
+from identification.candidate import Candidate
 from identification.collinearity import (
     CONFOUNDER_VIF_LIMIT,
     VIF_LIMIT,
@@ -36,10 +42,13 @@ from identification.collinearity import (
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
+from identification.equation_form import equation_text
 from identification.library import build_library, feature_matrix
 from identification.metrics import LOSSES, table_metrics, weak_metrics
 from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel
-from identification.pareto import attach_holdout, front_points, select
+from identification.pareto import admissible, attach_holdout, excited, front_points, select
+from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
+from identification.self_feedback import mark_self_feedback
 from identification.weak_form import WeakSettings, weak_rows
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
@@ -166,6 +175,7 @@ def identify(
     gates: dict[str, float] = {}
     identifiability: dict[str, Any] = {}
     below: dict[str, float] = {}
+    not_excited: dict[str, dict[str, Any]] = {}
     warnings: list[str] = roles.notes()  # where the held-out blocks went when a flight's tail is steady
     total_start = time.perf_counter()
     library = build_library(settings.sparse.groups)
@@ -196,9 +206,16 @@ def identify(
         if not candidates:
             bar.close("no candidates")
             raise UserError(f"engine {engine} found no expression for {name}", hint="raise --budget")
+        candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"])
         attach_holdout(candidates, Xp[okp], yp[okp], loss, ops["pick"])
+        mark_self_feedback(candidates, X[ok], y[ok], name)
         pick_y = yp[okp] if ops["pick"] is None else ops["pick"] @ yp[okp]
         chosen = select(candidates, settings.selection, scale=float(np.std(pick_y)) if okp.any() else 1.0)
+        flag = _excitation(name, candidates, (X[ok], y[ok]), (Xp[okp], yp[okp]), loss, ops, settings)
+        if flag is not None:
+            chosen, line, not_excited[name] = flag
+            candidates.append(chosen)
+            warnings.append(f"warning: {line}")
         elapsed = time.perf_counter() - start
         metrics = {
             split: table_metrics(yy, chosen.evaluate(xx)) if ops[split] is None
@@ -288,6 +305,8 @@ def identify(
     }
     if gates:
         engine_info["sparse_pick_r2"] = gates
+    if not_excited:
+        engine_info["flags"] = [v["flag"] for v in not_excited.values()]
     if weak is not None:
         engine_info["weak_form"] = {
             "test_function": "(1 - s^2)^p over t_j +- T, weights normalised to sum 1",
@@ -301,6 +320,7 @@ def identify(
         "checks": {
             "validation_r2_threshold": float(r2_threshold),
             "below_threshold": below,
+            "not_excited": {k: {n: v for n, v in d.items() if n != "flag"} for k, d in not_excited.items()},
             "vif_limit": VIF_LIMIT,
             "confounder_vif_limit": CONFOUNDER_VIF_LIMIT,
         },
@@ -320,3 +340,43 @@ def identify(
         targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info, extra=extra,
         body=body,
     )
+
+
+def _excitation(
+    name: str,
+    candidates: list[Candidate],
+    fit: tuple[np.ndarray, np.ndarray],
+    pick: tuple[np.ndarray, np.ndarray],
+    loss: str,
+    ops: dict[str, Any],
+    settings: EngineSettings,
+) -> tuple[Candidate, str, dict[str, Any]] | None:
+    """None when the flight excites the target (identification.pareto.excited); else (the minimal physical
+    model, fitted on the fit rows, a line saying so, the record for the model file)."""
+    constant = fit_terms(("1",), *fit, loss, ops["train"])
+    attach_holdout([constant], *pick, loss, ops["pick"])
+    const_loss = float(constant.holdout_loss) if constant.holdout_loss is not None else float("nan")
+    if not np.isfinite(const_loss) or excited(candidates, const_loss, settings.selection):
+        return None
+    minimal = minimal_candidate(name, *fit, loss, ops["train"])
+    attach_holdout([minimal], *pick, loss, ops["pick"])
+    passing = [c.holdout_loss for c in candidates if admissible(c, settings.selection)]
+    best = min((v for v in passing if v is not None and np.isfinite(v)), default=float("nan"))
+    composed = " (ax, ay, az are composed from it)" if name in ("fx", "fy", "fz") else ""
+    terms = " + ".join(MINIMAL_TERMS.get(name, ("1",)))
+    line = (
+        f"{name}: not excited by this flight: no candidate whose terms the flight identifies, without "
+        f"anti-damping, has a pick {loss} loss below the constant's {const_loss:.3g} by "
+        f"{settings.selection.min_gain:.0%} (best {best:.3g}); what the candidates fit is noise or an "
+        f"artefact, so {name} gets the minimal physical model (terms {terms}){composed}: "
+        + " ".join(text for _, text in equation_text(name, minimal.expression)).lstrip("+ ")
+        + " (3 significant digits)"
+    )
+    record = {
+        "constant_pick_loss": const_loss,
+        "best_pick_loss": best,
+        "min_gain": settings.selection.min_gain,
+        "model_terms": list(MINIMAL_TERMS.get(name, ("1",))),
+        "flag": line,
+    }
+    return minimal, line, record

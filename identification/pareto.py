@@ -12,7 +12,17 @@ the fit rows (coefficient over its standard error, inflated by the term's VIF) i
 term whose VIF there is above `max_vif` (the flight barely separates it from the others), as long as one
 candidate that passes exists. On closed-loop data the regressors are collinear and a model of tied
 terms with cancelling coefficients can have the lowest pick loss by fitting the targets' errors; it is not
-a model of the vehicle, and a controller derived from it can crash.
+a model of the vehicle, and a controller derived from it can crash. Likewise a candidate whose
+self-feedback is positive beyond `max_self_feedback_t` standard errors (identification.self_feedback:
+anti-damping, which no rigid body with rotors and drag has) is set aside while one that passes exists.
+Where no candidate passes both, those without anti-damping are compared, else all (the plausibility check
+then flags what was picked).
+
+Excitation: a target is not excited by the flight when no candidate that passes the rules above has a
+pick loss below the constant model's (the fit rows' mean, or median for the absolute loss) by `min_gain`
+of it (5%: an R^2 of about 0.1 on the pick rows): what the candidates fit there is noise or an artefact.
+identification.identify then gives it the minimal physical model (identification.physics_candidates) and
+says so.
 """
 
 from __future__ import annotations
@@ -73,12 +83,39 @@ def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: 
     finite = [(c, s) for c, s in scored if math.isfinite(s)]
     if not finite:
         return min(candidates, key=lambda c: c.complexity)
-    steady = [(c, s) for c, s in finite if _identified(c, settings)]
-    finite = steady or finite
+    finite = _passing(finite, settings)
     best = min(s for _, s in finite)
     limit = best * (1.0 + settings.rel_tol) + settings.abs_tol * (scale if scale > 0 else 1.0)
     ok = [(c, s) for c, s in finite if s <= limit]
     return min(ok, key=lambda cs: (cs[0].complexity, cs[1]))[0]
+
+
+def _passing(scored: list[tuple[Candidate, float]], settings: SelectionSettings) -> list:
+    """The scored candidates the pick compares: identified and without anti-damping; else without
+    anti-damping; else all (module docstring)."""
+    calm = [cs for cs in scored if not anti_damping(cs[0], settings)]
+    return [cs for cs in calm if _identified(cs[0], settings)] or calm or scored
+
+
+def anti_damping(c: Candidate, settings: SelectionSettings) -> bool:
+    """True when the candidate's self-feedback is positive beyond max_self_feedback_t standard errors."""
+    slope, se = c.self_feedback, c.self_feedback_se
+    if slope is None or not slope > 0:
+        return False
+    return se is not None and slope > settings.max_self_feedback_t * se
+
+
+def admissible(c: Candidate, settings: SelectionSettings) -> bool:
+    """True when the candidate passes the pick's rules: terms identified, no anti-damping."""
+    return _identified(c, settings) and not anti_damping(c, settings)
+
+
+def excited(candidates: Sequence[Candidate], constant_loss: float, settings: SelectionSettings) -> bool:
+    """False when no candidate passing the pick's rules (identified, no anti-damping) has a pick loss below
+    constant_loss (the constant model's on the pick rows) by min_gain of it (module docstring)."""
+    rules = [c for c in candidates if admissible(c, settings)]
+    best = min((_score(c) for c in rules), default=float("inf"))
+    return bool(best < constant_loss * (1.0 - settings.min_gain))
 
 
 def _identified(c: Candidate, settings: SelectionSettings) -> bool:

@@ -8,7 +8,8 @@ given):
 - hover: z'' at u_h is near 0 (the log hovered there), within 15% of g; with a vehicle file, the mass
   that the model's thrust implies (Ct * sum u_h^2 / thrust acceleration, kg) against the file's.
 - control signs: more thrust (sum u_i^2) accelerates up (z'' < 0), the roll, pitch and yaw combinations
-  f2, f3, f4 (docs/design.md) give positive wx', wy', wz'; a target that does not respond is flagged too.
+  f2, f3, f4 (docs/design.md) give positive wx', wy', wz'; a target that does not respond is flagged too
+  (saying so when the identification found the flight does not excite it: checks.not_excited).
 - self-feedback: d(wx')/d(wx), d(wy')/d(wy), d(wz')/d(wz) and d(x'')/d(vx), d(y'')/d(vy), d(z'')/d(vz),
   averaged over the data's rows, must not be positive beyond max_self_feedback (1/s): a positive one is
   anti-damping (the state feeds its own growth), which no rigid body with rotors and drag has.
@@ -99,6 +100,7 @@ def plausibility_checks(
             text += f"; thrust/weight at u_h {thrust_acc / gravity:.2f} (the log hovers: expected 1 +- 0.2)"
         checks.append(Check("hover thrust", ok, text))
     delta = max(1.0, 0.02 * u_h)
+    unexcited = _not_excited(model)
     for target, (combo, sign, what) in CONTROL.items():
         if target not in names:
             continue
@@ -108,7 +110,11 @@ def plausibility_checks(
         slope = float(up - down) / (2 * delta)  # target unit per rad/s of the combination's command
         scale = max(abs(float(_eval(model, target, level, np.full(4, u_h))[0])), 1e-3)
         if abs(slope) * u_h * 0.1 < 1e-6 * scale or slope == 0:
-            checks.append(Check(f"control {target}", False, f"{target} does not respond to {combo}: {what}"))
+            why = " (not excited by the flight: its minimal model has no control term)" if (
+                target in unexcited) else ""
+            checks.append(
+                Check(f"control {target}", False, f"{target} does not respond to {combo}: {what}{why}")
+            )
         else:
             ok = np.sign(slope) == sign
             checks.append(
@@ -135,6 +141,13 @@ def plausibility_checks(
             Check(f"self-feedback {target}", ok, f"d{target}/d{name} {mean:+.3g} 1/s on average ({label})")
         )
     return checks
+
+
+def _not_excited(model) -> set[str]:
+    """The targets the model's identification flagged not excited (checks.not_excited; fz stands for az)."""
+    learned = getattr(model, "model_", model)
+    flagged = set((getattr(learned, "extra", None) or {}).get("checks", {}).get("not_excited", {}) or {})
+    return flagged | ({"az"} if "fz" in flagged else set())
 
 
 def checks_text(checks: list[Check]) -> str:
