@@ -202,9 +202,11 @@ def guided(args, out: Path) -> dict[str, Row]:
     tlog = out / "guided.tlog"
     ap = ArduPilotProcess(Path(args.ardupilot), out / "ap-guided", tlog, speedup=args.guided_speedup)
     rows = {}
+    gcs_address = f"tcp:127.0.0.1:{TCP_BASE + 2 + 10 * ap.instance}"
     try:
-        gcs = ArduCopterLink(f"tcp:127.0.0.1:{TCP_BASE + 2 + 10 * ap.instance}", wall_timeout=120.0)
+        gcs = ArduCopterLink(gcs_address, wall_timeout=120.0)
         gcs.wait_ekf_gps(180.0)
+        gcs.close()
         for name, duration in GUIDED_FLIGHTS:
             try:
                 rows[name] = fly_figures(quadsr("fly", "--model", str(model), "--trajectory",
@@ -215,12 +217,13 @@ def guided(args, out: Path) -> dict[str, Row]:
                 said = [line for line in str(exc).splitlines() if "ArduPilot" in line]
                 print(f"GUIDED {name} failed: {said[-1] if said else str(exc)[-300:]}", flush=True)
                 rows[name] = (math.nan, math.nan, math.nan)
-            drain_until = time.monotonic() + 10.0  # the GCS's backlog of the flight, read at once
-            while gcs.poll(0.01) is not None and time.monotonic() < drain_until:
-                pass
+            # a fresh GCS connection after each flight: one held open through it falls behind ArduCopter's
+            # streams (its backlog's old HEARTBEATs and clock made a LAND after Case I time out)
+            gcs = ArduCopterLink(gcs_address, wall_timeout=120.0)
+            gcs.fly_for(0.5)
             if gcs.armed:  # handed back in LOITER: ArduCopter may have landed and disarmed by itself
                 gcs.land(90.0)
-        gcs.close()
+            gcs.close()
     finally:
         ap.stop()
     return rows
