@@ -27,6 +27,7 @@ COMMAND_RESEND_S = 0.25  # wall s between re-sends of an unacknowledged command
 HEARTBEAT_PERIOD_S = 1.0  # wall s
 IGNORE_RATES = 0b0000_0111  # SET_ATTITUDE_TARGET type_mask: body roll, pitch, yaw rate ignored
 IGNORE_ATTITUDE = 0b1000_0000  # attitude quaternion ignored
+POSITION_AND_YAW = 0b1101_1111_1000  # SET_POSITION_TARGET_LOCAL_NED type_mask: velocity, accel, yaw rate off
 
 
 @dataclass(frozen=True)
@@ -240,6 +241,14 @@ class OffboardLink:
     def rates_target(self, rates: Sequence[float], thrust: float) -> None:
         """SET_ATTITUDE_TARGET: body rates (FRD, rad/s) and normalised thrust in [0, 1]."""
         self._attitude_target(IGNORE_ATTITUDE, (1.0, 0.0, 0.0, 0.0), rates, thrust)
+
+    def position_target(self, position: Sequence[float], yaw: float) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED: position NED (m, from the autopilot's EKF origin) and yaw (rad);
+        the autopilot's own position controller flies there (ArduCopter GUIDED)."""
+        x, y, z = (float(v) for v in position)
+        self.link.send([mavlink.MAVLink_set_position_target_local_ned_message(
+            self.state.time_boot_ms & 0xFFFFFFFF, self.state.system_id or 0, 1, mavlink.MAV_FRAME_LOCAL_NED,
+            POSITION_AND_YAW, x, y, z, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(yaw), 0.0)])
 
     def _attitude_target(self, mask: int, q: Sequence[float], rates: Sequence[float], thrust: float) -> None:
         t = min(max(float(thrust), 0.0), 1.0) if math.isfinite(thrust) else 0.0

@@ -111,6 +111,8 @@ def _fly_offboard(args: argparse.Namespace, controller: Any, trajectory: Any, ve
     mode = f"{companion.flavour.name} {companion.flavour.offboard.name}"
     print(f"quadsr fly: {controller.name} on {trajectory.name} for {duration:g} s through {mode} at "
           f"{args.autopilot}, output in {out}", flush=True)
+    for note in getattr(companion, "notes", []):
+        print(f"quadsr fly: {note}", flush=True)
     result = companion.fly(out)
     m = result.metrics
     source = "truth" if truth else f"{companion.flavour.name} estimate"

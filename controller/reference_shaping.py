@@ -137,6 +137,37 @@ class TakeoffTrajectory:
                          yaw_acceleration=a * dyaw)
 
 
+class HeightFloor:
+    """A trajectory kept at least `min_height` [m] above z = 0 (NED, z down, the ground at the start): where
+    it is lower, its height is min_height and its vertical velocity, acceleration, jerk and snap are 0 (the
+    horizontal path and yaw unchanged). For an autopilot that flies attitude targets only in the air
+    (ArduCopter GUIDED), since the paper's Cases I and II start on the ground."""
+
+    def __init__(self, trajectory: Trajectory, min_height: float):
+        self.inner = trajectory
+        self.min_height = float(min_height)
+        self.name = getattr(trajectory, "name", "")
+
+    def reference(self, t: float) -> Reference:
+        """The trajectory's reference at t [s], raised to min_height where it is lower."""
+        ref = self.inner.reference(t)
+        if float(ref.position[2]) <= -self.min_height:
+            return ref
+        flat = np.array([1.0, 1.0, 0.0])  # the vertical components held at 0
+        return Reference(position=np.array([ref.position[0], ref.position[1], -self.min_height]),
+                         velocity=flat * ref.velocity, acceleration=flat * ref.acceleration,
+                         jerk=flat * ref.jerk, snap=flat * ref.snap, yaw=ref.yaw, yaw_rate=ref.yaw_rate,
+                         yaw_acceleration=ref.yaw_acceleration)
+
+    def raised_until(self, duration: float, step: float = 0.01) -> float:
+        """The last time [s] in [0, duration] at which the reference is raised (0: never), on a step grid."""
+        last = 0.0
+        for k in range(int(duration / step) + 1):
+            if float(self.inner.reference(k * step).position[2]) > -self.min_height:
+                last = k * step
+        return last
+
+
 class TimeScalingGovernor:
     """Follows a trajectory in its own time tau at rate s in (0, 1] that keeps it within the limits (see
     the module doc). Stateful: call `reference(t)` with increasing t [s]; `reset()` before a new flight."""

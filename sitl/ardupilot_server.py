@@ -1,11 +1,16 @@
 """`quadsr sitl --ardupilot`: the SITL's physics and sensors stepped by ArduPilot over its JSON interface.
 
-Lockstep with ArduPilot's frame_count: a new frame steps the physics 1 ms with the packet's PWM (through
-the vehicle's PWM range and motor curve) and is answered with the new state; the same frame again (ArduPilot
-re-sends after about 1.1 s without an answer) gets the last answer again without stepping; a frame_count
-going back, or frames from a new source address (another ArduPilot process), is a restarted ArduPilot:
-the vehicle is put back at its start and time restarts (ArduPilot takes the falling timestamp as a
-physics reset). Packets with a wrong magic or size are dropped and counted.
+Lockstep with ArduPilot's frame_count, pipelined: a new frame is answered at once with the state 1 ms on,
+computed before it came, and its PWM (through the vehicle's PWM range and motor curve) drives the next 1 ms
+step, computed right after the answer is sent, while ArduCopter runs its loop on that answer. So the two
+processes work at the same time on two cores instead of in turn (lockstep is otherwise serial), at the price
+of a 1 ms actuator delay: the PWM of frame k acts from the time of its answer on, i.e. over the step after
+it (the motors' own lag is tens of ms). Still deterministic: the answers are a function of the frames. The
+first answer after a (re)start comes from the throttle that holds the initial rotor speed.
+The same frame again (ArduPilot re-sends after about 1.1 s without an answer) gets the last answer again
+without stepping; a frame_count going back, or frames from a new source address (another ArduPilot
+process), is a restarted ArduPilot: the vehicle is put back at its start and time restarts (ArduPilot takes
+the falling timestamp as a physics reset). Packets with a wrong magic or size are dropped and counted.
 The first answer carries timestamp 0.001 s: ArduPilot's clock advances by differences of timestamps.
 
 The truth .tlog holds what `quadsr sitl --log` writes for a HIL flight (the step frames of sitl.hil, from
@@ -26,12 +31,12 @@ from typing import TextIO
 
 from bridge.errors import UserError
 from bridge.link import Endpoint
-from bridge.messages import encode_hil_actuator_controls
+from bridge.messages import ARMED_MODE, LOCKSTEP_FLAG, mavlink
 from bridge.tlog import TlogWriter
 from bridge.vehicle import VehicleConfig
 from sitl.ardupilot_json import BadPacket, sensor_json, servo_motors, throttles_from_pwm
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
-from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, Framer, HilEncoder, part_of
+from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, Framer, HilEncoder, kind
 from sitl.sensors import SensorModel
 
 JSON_STEP_USEC = 1000  # physics step per servo frame: ArduCopter's 400 Hz loop needs a gyro at >= 720 Hz
@@ -40,6 +45,7 @@ TLOG_BATCH_USEC = 25 * TLOG_EVERY_USEC  # simulated us of tlog frames written at
 MAX_WAIT_S = 0.25  # longest single blocking wait, so SIGINT/SIGTERM are honoured promptly
 AUTOPILOT_COMPONENT_ID = 1  # the throttles are logged as the autopilot's HIL_ACTUATOR_CONTROLS
 LISTENING = "listening for ArduPilot on"
+_UNUSED_CONTROLS = (0.0,) * 12  # HIL_ACTUATOR_CONTROLS controls[4..15]
 
 
 @dataclass
@@ -97,10 +103,14 @@ class ArduPilotServer:
         self.steps = 0
         self.last_count: int | None = None
         self.last_reply = b""
+        self.answered_usec = 0  # simulated time of the last answer sent (the physics is 1 ms ahead of it)
+        self._ready: bytes | None = None  # the answer to the next new frame, once computed (advance)
+        self._throttles = (0.0, 0.0, 0.0, 0.0)  # what drives the next step: the last frame's PWM
         self.peer: tuple[str, int] | None = None
         self._state = HilEncoder(v.home, _Sequence(SYSTEM_ID, HIL_COMPONENT_ID))  # type: ignore[arg-type]
         autopilot = _Sequence(SYSTEM_ID, AUTOPILOT_COMPONENT_ID)
         self._commands = Framer(SYSTEM_ID, AUTOPILOT_COMPONENT_ID, autopilot)
+        self._actuators = kind(mavlink.MAVLink_hil_actuator_controls_message)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self.sock.bind(options.endpoint.address)
@@ -128,9 +138,14 @@ class ArduPilotServer:
         self.quad.reset(position=v.initial.position, yaw=v.initial.yaw, rotor_speeds=[speed] * 4)
         self.sensors.reset()
         self._log_state()
+        held = v.motor_curve.throttle_for_speed(speed) if speed > 0.0 else 0.0
+        self._throttles = (held, held, held, held)
+        self._ready = None
+        self.answered_usec = 0
 
     def handle(self, data: bytes, sender: tuple[str, int]) -> bytes | None:
-        """The reply to one datagram from ArduPilot (None: dropped and counted)."""
+        """The reply to one datagram from ArduPilot (None: dropped and counted); a new frame's PWM is kept
+        for the next step (`advance`, which the server runs after sending the reply)."""
         stats = self.stats
         try:
             count, p1, p2, p3, p4 = servo_motors(data)
@@ -156,29 +171,46 @@ class ArduPilotServer:
             stats.missed += count - last - 1
         self.last_count = count
         self._silent_said = False
-        self.last_reply = reply = self._step(throttles_from_pwm((p1, p2, p3, p4), *self.pwm_range))
+        if self._ready is None:  # not computed ahead (the first frame, or a caller that never advances)
+            self.advance()
+        self.last_reply = reply = self._ready  # type: ignore[assignment]
+        self._ready = None
+        self.answered_usec = self.quad.time_usec
+        self._throttles = throttles_from_pwm((p1, p2, p3, p4), *self.pwm_range)
         return reply
+
+    def advance(self) -> None:
+        """Step the physics 1 ms with the last frame's throttles and keep the answer for the next new frame
+        (nothing when it is already computed)."""
+        if self._ready is None:
+            self._ready = self._step(self._throttles)
 
     def _restart(self, count: int, why: str) -> None:
         """ArduPilot restarted: say so, put the vehicle back at its start."""
         self.stats.restarts += 1
-        self._say(f"quadsr sitl: ArduPilot restarted ({why}) at t={self.quad.time_usec * 1e-6:.3f}s: "
+        self._say(f"quadsr sitl: ArduPilot restarted ({why}) at t={self.answered_usec * 1e-6:.3f}s: "
                   "vehicle reset to its start")
         self._reset()
         self.last_count = None
 
     def _step(self, throttles: tuple[float, float, float, float]) -> bytes:
-        """Log the command at the current time, step 1 ms, log the new state, return its JSON line."""
+        """Log the command at the current time, step 1 ms, return the new state's JSON line: on the tlog's
+        4 ms grid from the full sensor sample (logged), between from the IMU alone (the JSON object has no
+        magnetometer, barometer or GPS: ArduPilot simulates its own from the position and attitude)."""
         quad = self.quad
-        on_grid = self.tlog is not None and quad.time_usec % TLOG_EVERY_USEC == 0
-        if on_grid:
-            msg = encode_hil_actuator_controls(quad.time_usec, throttles)
-            self._pending.extend(self._commands.frames([part_of(msg)]))
+        logging = self.tlog is not None
+        if logging and quad.time_usec % TLOG_EVERY_USEC == 0:  # as encode_hil_actuator_controls, packed here
+            msg_id, extra, pack = self._actuators  # wire order: time_usec, flags, controls[16], mode
+            payload = pack(quad.time_usec, LOCKSTEP_FLAG, *throttles, *_UNUSED_CONTROLS, ARMED_MODE)
+            self._pending.extend(self._commands.frames([(msg_id, extra, payload)]))
         quad.step(throttles)
         self.steps += 1
-        s = self._log_state()
-        return sensor_json(quad.time_usec * 1e-6, s.gyro, s.accel, quad.position, quad.velocity,
-                           quad.quaternion)
+        if logging and quad.time_usec % TLOG_EVERY_USEC == 0:
+            s = self._log_state()
+            accel, gyro = s.accel, s.gyro
+        else:
+            accel, gyro = self.sensors.imu(quad)
+        return sensor_json(quad.time_usec * 1e-6, gyro, accel, quad.position, quad.velocity, quad.quaternion)
 
     def _log_state(self):
         """Sample the sensors at the current step and queue its HIL frames for the tlog; return the sample.
@@ -221,7 +253,8 @@ class ArduPilotServer:
             # SO_RCVTIMEO makes half the system calls but measured 10-20 us more CPU per frame here.
             sock = self.sock
             sock.settimeout(MAX_WAIT_S)
-            recvfrom, sendto, handle, monotonic = sock.recvfrom, sock.sendto, self.handle, time.monotonic
+            recvfrom, sendto, monotonic = sock.recvfrom, sock.sendto, time.monotonic
+            handle, advance = self.handle, self.advance
             while not self._stop and not self._done():
                 try:
                     data, sender = recvfrom(4096)
@@ -236,11 +269,12 @@ class ArduPilotServer:
                             sendto(reply, sender)
                         except OSError:
                             pass
+                        advance()  # the next answer, while ArduCopter works on this one
                 elif self.steps and not self._silent_said and now - last_packet > opts.silence_timeout:
                     self._silent_said = True
                     self.flush_tlog()
                     self._say(f"quadsr sitl: ArduPilot silent for {opts.silence_timeout:g} s at "
-                              f"t={self.quad.time_usec * 1e-6:.3f}s (frame {self.last_count}): stopped or "
+                              f"t={self.answered_usec * 1e-6:.3f}s (frame {self.last_count}): stopped or "
                               "killed? waiting for it (a restarted ArduPilot resets the vehicle)")
                 if now >= next_status:
                     self._say(self.status_line(now - status_wall, self.steps - status_steps))
@@ -260,7 +294,7 @@ class ArduPilotServer:
         n, e, d = self.quad.position
         who = f"{self.peer[0]}:{self.peer[1]}" if self.peer else "none"
         counters = " ".join(f"{k}={v}" for k, v in self.stats.as_dict().items())
-        return (f"quadsr sitl: t={self.quad.time_usec * 1e-6:.3f}s steps={self.steps} rate={rate:.0f}/s "
+        return (f"quadsr sitl: t={self.answered_usec * 1e-6:.3f}s steps={self.steps} rate={rate:.0f}/s "
                 f"rtf={rate * JSON_STEP_USEC * 1e-6:.2f} ardupilot={who} frame={self.last_count} "
                 f"pos_ned=({n:.3f},{e:.3f},{d:.3f})m {counters}")
 

@@ -130,17 +130,7 @@ class SensorModel:
         if last is not None and last.time_usec == t:
             return last
         k = t // EXCHANGE_STEP_USEC
-        cfg = self.config
-
-        f = quad.specific_force_body()
-        b = cfg.accel.bias
-        n = self._gauss3(cfg.accel.noise)
-        accel = (f[0] + b[0] + n[0], f[1] + b[1] + n[1], f[2] + b[2] + n[2])
-        w = quad.rates
-        b = cfg.gyro.bias
-        n = self._gauss3(cfg.gyro.noise)
-        gyro = (w[0] + b[0] + n[0], w[1] + b[1] + n[1], w[2] + b[2] + n[2])
-
+        accel, gyro = self.imu(quad)
         new_mag = last is None or k % MAG_EVERY_STEPS == 0
         mag = self._mag(quad) if new_mag else last.mag  # type: ignore[union-attr]
         new_baro = last is None or k % BARO_EVERY_STEPS == 0
@@ -155,6 +145,19 @@ class SensorModel:
                           new_mag, new_baro, new_gps)
         self._last = out
         return out
+
+    def imu(self, quad: Quadrotor) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(specific force m/s^2, angular rate rad/s), both body FRD, biased and noisy (a new draw each call):
+        the IMU part of `sample`, alone for a simulator that needs only the IMU between sample steps."""
+        cfg = self.config
+        f = quad.specific_force_body()
+        b = cfg.accel.bias
+        n = self._gauss3(cfg.accel.noise)
+        accel = (f[0] + b[0] + n[0], f[1] + b[1] + n[1], f[2] + b[2] + n[2])
+        w = quad.rates
+        b = cfg.gyro.bias
+        n = self._gauss3(cfg.gyro.noise)
+        return accel, (w[0] + b[0] + n[0], w[1] + b[1] + n[1], w[2] + b[2] + n[2])
 
     def _mag(self, quad: Quadrotor) -> tuple[float, float, float]:
         """Earth field rotated into the body (R^T m_NED), plus bias and noise; gauss FRD."""

@@ -127,10 +127,12 @@ def test_lockstep_resend_restart_and_bad_packets_over_udp(tmp_path):
         stamps = [r["timestamp"] for r in replies]
         assert stamps[0] == pytest.approx(0.001) and stamps[-1] == pytest.approx(0.4)
         assert all(b - a == pytest.approx(0.001) for a, b in zip(stamps, stamps[1:], strict=False))
-        # the same physics in-process gives the same state (1 ms steps, hover PWM through the motor curve)
+        # the same physics in-process gives the same state (1 ms steps, hover PWM through the motor curve),
+        # each frame's PWM acting over the step after its answer (pipelined: a 1 ms actuator delay)
         quad = Quadrotor(load_vehicle("fang-chen-buaa"), 1000)
         throttle = (HOVER_PWM - 1000) / 1000
-        for _ in range(400):
+        quad.step((0.0,) * 4)  # the first answer comes before any PWM: the rotors' initial speed, 0, held
+        for _ in range(399):
             quad.step((throttle,) * 4)
         assert replies[-1]["position"] == pytest.approx(list(quad.position), abs=1e-9)
         assert quad.position[2] < -0.01  # 600 rad/s is above hover: it climbed
@@ -246,3 +248,52 @@ def test_server_says_when_ardupilot_falls_silent():
     text = out.getvalue()
     assert "ArduPilot silent for 0.3 s at t=0.010s (frame 9): stopped or killed?" in text, text
     assert text.count("silent") == 1 and text.rstrip().endswith("(exit)")
+
+
+def test_a_frames_pwm_drives_the_step_after_its_answer():
+    """Pipelined lockstep: the answer to frame k is computed before frame k arrives (so the server computes
+    while ArduCopter runs its loop), and frame k's PWM acts from the time of that answer on."""
+    def server() -> ArduPilotServer:
+        options = ArduPilotOptions(vehicle=load_vehicle("fang-chen-buaa"), endpoint=Endpoint("127.0.0.1", 0),
+                                   status_interval=0)
+        return ArduPilotServer(options, out=io.StringIO())
+
+    low, high = server(), server()
+    sender = ("127.0.0.1", 9)
+    try:
+        for k in range(50):
+            low.handle(pack_servo_packet(k, [HOVER_PWM] * 4 + [0] * 12), sender)
+            high.handle(pack_servo_packet(k, [HOVER_PWM] * 4 + [0] * 12), sender)
+            low.advance()
+            high.advance()
+        assert low.quad.time_usec == low.answered_usec + 1000 == 51_000  # computed one step ahead
+        a = low.handle(pack_servo_packet(50, [1000] * 4 + [0] * 12), sender)
+        b = high.handle(pack_servo_packet(50, [2000] * 4 + [0] * 12), sender)
+        assert a == b  # frame 50's answer does not depend on frame 50's PWM
+        low.advance()
+        high.advance()
+        a = json.loads(low.handle(pack_servo_packet(51, [HOVER_PWM] * 4 + [0] * 12), sender))
+        b = json.loads(high.handle(pack_servo_packet(51, [HOVER_PWM] * 4 + [0] * 12), sender))
+        assert b["imu"]["accel_body"][2] < a["imu"]["accel_body"][2] - 0.1  # but frame 51's does
+    finally:
+        low.close()
+        high.close()
+
+
+def test_logged_throttles_are_pymavlinks_hil_actuator_controls(tmp_path):
+    """The truth .tlog's HIL_ACTUATOR_CONTROLS (packed by the server itself) decode as pymavlink's own, with
+    the throttles that drove each step."""
+    options = ArduPilotOptions(vehicle=load_vehicle("fang-chen-buaa"), endpoint=Endpoint("127.0.0.1", 0),
+                               log=tmp_path / "t.tlog", status_interval=0)
+    server = ArduPilotServer(options, out=io.StringIO())
+    try:
+        for k in range(12):
+            server.handle(pack_servo_packet(k, [1250, 1500, 1750, 2000] + [0] * 12), ("127.0.0.1", 9))
+            server.advance()
+    finally:
+        server.close()
+    commands = [m for _, m in read_tlog(tmp_path / "t.tlog") if m.get_type() == "HIL_ACTUATOR_CONTROLS"]
+    assert [m.time_usec for m in commands] == [0, 4000, 8000, 12000]
+    assert commands[0].controls[:4] == [0.0] * 4  # the first step: before any PWM, the initial 0 held
+    assert commands[1].controls[:4] == pytest.approx([0.25, 0.5, 0.75, 1.0])
+    assert commands[1].controls[4:] == [0.0] * 12 and commands[1].flags == 1 and commands[1].mode == 129

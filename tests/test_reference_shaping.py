@@ -13,6 +13,7 @@ from controller.outer_loop import saturate_feedback
 from controller.plugin import Reference, VehicleState
 from controller.reference_shaping import (
     GovernorSettings,
+    HeightFloor,
     TakeoffSettings,
     TakeoffTrajectory,
     TimeScalingGovernor,
@@ -172,3 +173,19 @@ def test_governor_slows_an_infeasible_reference_and_the_vehicle_follows_the_path
     path_error = np.abs(np.hypot(r.xi[:, 0], r.xi[:, 1] + 4.0) - 4.0)
     assert path_error[r.t >= 6.0].max() < 0.05
     assert flown.scale == pytest.approx(math.sqrt(6.0 / 16.0), rel=1e-6) and r.error[-1] < 0.05
+
+
+def test_height_floor_raises_case1_start_only_and_keeps_its_horizontal_path():
+    case1 = load_trajectory("case1")  # z = -0.2 t: on the ground at t = 0, 0.5 m up at 2.5 s
+    floor = HeightFloor(case1, 0.5)
+    start, raw = floor.reference(0.0), case1.reference(0.0)
+    assert start.position[2] == pytest.approx(-0.5) and raw.position[2] == pytest.approx(0.0)
+    assert start.velocity[2] == 0.0 and start.acceleration[2] == 0.0 and start.jerk[2] == 0.0
+    np.testing.assert_allclose(start.position[:2], raw.position[:2])
+    np.testing.assert_allclose(start.velocity[:2], raw.velocity[:2])
+    np.testing.assert_allclose(start.acceleration[:2], raw.acceleration[:2])
+    later, raw_later = floor.reference(3.0), case1.reference(3.0)
+    np.testing.assert_allclose(later.position, raw_later.position)
+    np.testing.assert_allclose(later.velocity, raw_later.velocity)
+    assert floor.raised_until(20.0) == pytest.approx(2.5, abs=0.011)
+    assert HeightFloor(trajectory_from_dict(HOVER, "hover"), 0.5).raised_until(20.0) == 0.0
