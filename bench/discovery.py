@@ -325,15 +325,16 @@ def table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(rows: list[Row], floors: list[tuple[str, bool]], out: Path) -> None:
-    """OUT/discovery.md (the table, the floors, ours' missing/extra terms) and OUT/discovery.csv."""
+def write_outputs(rows: list[Row], floors: list[tuple[str, bool]], out: Path,
+                  stem: str = "discovery") -> None:
+    """OUT/<stem>.md (the table, the floors, ours' missing/extra terms) and OUT/<stem>.csv."""
     md = [table(rows), "", *[f"- [{'PASS' if ok else 'FAIL'}] {label}" for label, ok in floors], ""]
     for r in rows:
         if r.engine.startswith("discovery") and (r.missing_terms or r.extra_terms):
             md.append(f"- {r.case}: missing {', '.join(r.missing_terms) or '-'}; "
                       f"extra {', '.join(r.extra_terms) or '-'}")
-    (out / "discovery.md").write_text("\n".join(md) + "\n", encoding="utf-8")
-    with (out / "discovery.csv").open("w", newline="", encoding="utf-8") as fh:
+    (out / f"{stem}.md").write_text("\n".join(md) + "\n", encoding="utf-8")
+    with (out / f"{stem}.csv").open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["case", "engine", *[f"r2_{n}" for n in TARGET_NAMES], "found", "missing", "extra",
                     "reference_terms", "frame", "max_coef_error", "wall_s", "cpu_s"])
