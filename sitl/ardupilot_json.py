@@ -13,6 +13,8 @@ from __future__ import annotations
 import struct
 from typing import NamedTuple
 
+from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT
+
 MAGIC_16 = 18458
 MAGIC_32 = 29569
 _HEAD = struct.Struct("<HHI")
@@ -103,4 +105,7 @@ def sensor_json(
     """The reply line: timestamp (s, to the us), gyro FRD (rad/s), specific force FRD (m/s^2), NED position
     (m) and velocity (m/s), attitude quaternion (w, x, y, z); 10 significant digits, compact, between
     newlines (one % format: this runs once per 1 ms physics step)."""
+    a, w = ACCEL_LIMIT, GYRO_LIMIT  # the IMU's full scale, as on the PX4 path (a touchdown reads past it)
+    accel = tuple(a if v > a else (-a if v < -a else v) for v in accel)
+    gyro = tuple(w if v > w else (-w if v < -w else v) for v in gyro)
     return (_SENSOR_LINE % (timestamp, *gyro, *accel, *position, *velocity, *quaternion)).encode("ascii")

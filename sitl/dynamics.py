@@ -153,6 +153,7 @@ class Quadrotor:
         self._s: list[float] = [0.0] * 17
         self._time_usec = 0
         self._on_ground = False
+        self._impact: tuple[float, ...] | None = None  # NED m/s^2 of a touchdown in the last step
         pos = vehicle.initial.position
         self.reset(position=pos, yaw=vehicle.initial.yaw)
 
@@ -196,6 +197,7 @@ class Quadrotor:
         self._cmd = speeds
         self._time_usec = 0
         self._on_ground = False
+        self._impact = None
         self._specific_force_at = (-1, 0)
         if self.vehicle.wind.active:  # the wind restarts with time (same seed: same wind)
             self._wind_model = Wind(self.vehicle.wind, EXCHANGE_STEP)
@@ -215,7 +217,10 @@ class Quadrotor:
         f = self._f
         apply_ground = self.ground.apply
         s = self._s
+        impact = None
         for _ in range(self.substeps):
+            was_flying = not self._on_ground
+            v0 = (s[3], s[4], s[5])
             s = rk4_step(f, s, cmd, h, self._first_slope(s, cmd))
             qw, qx, qy, qz = s[6], s[7], s[8], s[9]
             n = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
@@ -224,7 +229,12 @@ class Quadrotor:
             s[8] = qy * n
             s[9] = qz * n
             self._on_ground = apply_ground(s)
+            if self._on_ground and was_flying:
+                impact = v0  # the ground took this velocity away in one substep (a touchdown)
         self._s = s
+        # NED m/s^2: the touchdown's mean acceleration over this step; the accelerometer feels it (it felt
+        # nothing of the ground before: a landing was invisible to an autopilot's estimator)
+        self._impact = None if impact is None else tuple(-v / (self.step_usec * 1e-6) for v in impact)
         self._time_usec += self.step_usec
         if self._wind_model is not None:  # the wind over the next step, reported with this step's telemetry
             self._wind[:] = self._wind_model.sample(self._time_usec * 1e-6)
@@ -336,22 +346,16 @@ class Quadrotor:
         s = self._s
         qw, qx, qy, qz = s[6], s[7], s[8], s[9]
         if self._on_ground:
-            # a = 0: R^T (0, 0, -g)
-            g = self._g
-            return (-g * 2.0 * (qx * qz - qw * qy), -g * 2.0 * (qy * qz + qw * qx),
-                    -g * (1.0 - 2.0 * (qx * qx + qy * qy)))
+            # a = 0 at rest: R^T (0, 0, -g); on the step of a touchdown a = its mean deceleration
+            if self._impact is None:
+                return _to_body(qw, qx, qy, qz, 0.0, 0.0, -self._g)
+            ix, iy, iz = self._impact
+            return _to_body(qw, qx, qy, qz, ix, iy, iz - self._g)
         if not self._paper:  # R^T (a - g e3) from the derivative: every effect's force, already summed
             if self._specific_force_at == (self._time_usec, id(s)):
                 return self._specific_force
             d = self._slope = self._derivative(s, self._cmd)
-            ax, ay, az = d[3], d[4], d[5] - self._g
-            self._specific_force = (
-                (1.0 - 2.0 * (qy * qy + qz * qz)) * ax + 2.0 * (qx * qy + qw * qz) * ay
-                + 2.0 * (qx * qz - qw * qy) * az,
-                2.0 * (qx * qy - qw * qz) * ax + (1.0 - 2.0 * (qx * qx + qz * qz)) * ay
-                + 2.0 * (qy * qz + qw * qx) * az,
-                2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
-                + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)
+            self._specific_force = _to_body(qw, qx, qy, qz, d[3], d[4], d[5] - self._g)
             self._specific_force_at = (self._time_usec, id(s))
             return self._specific_force
         mixer = self.mixer
@@ -372,3 +376,15 @@ class Quadrotor:
             fbz -= cdz * ubz * abs(ubz)
         im = self._inv_m
         return fbx * im, fby * im, fbz * im
+
+
+def _to_body(qw: float, qx: float, qy: float, qz: float, ax: float, ay: float, az: float
+             ) -> tuple[float, float, float]:
+    """R(q)^T a: an NED vector in FRD body axes (q body->earth, unit), written out for the hot path."""
+    return (
+        (1.0 - 2.0 * (qy * qy + qz * qz)) * ax + 2.0 * (qx * qy + qw * qz) * ay
+        + 2.0 * (qx * qz - qw * qy) * az,
+        2.0 * (qx * qy - qw * qz) * ax + (1.0 - 2.0 * (qx * qx + qz * qz)) * ay
+        + 2.0 * (qy * qz + qw * qx) * az,
+        2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
+        + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)

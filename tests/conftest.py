@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import re
 import socket
+import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -17,6 +19,39 @@ from quadsr.child_process import OutputProcess
 REPO = Path(__file__).resolve().parent.parent
 LISTENING = re.compile(r"(?:listening for the (?:companion|autopilot) on|sending to the autopilot at) "
                        r"((?:udp|tcp):[\d.]+:(\d+))")
+
+
+def run_watched(cmd: list[str], stall_s: float, cap_s: float = 1800.0,
+                **popen) -> subprocess.CompletedProcess:
+    """Run cmd to its end, its output captured (text); fails only when it prints nothing for stall_s seconds
+    (a hang) or runs past cap_s: a long pipeline on a loaded machine is slow, not stuck, so a budget on its
+    whole wall time would make the test depend on the machine's load."""
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **popen)
+    out: dict[str, list[str]] = {"stdout": [], "stderr": []}
+    last = [time.monotonic()]
+
+    def pump(name: str, stream) -> None:
+        for line in stream:
+            out[name].append(line)
+            last[0] = time.monotonic()
+
+    pumps = [threading.Thread(target=pump, args=(n, getattr(proc, n)), daemon=True) for n in out]
+    for t in pumps:
+        t.start()
+    start = time.monotonic()
+    while proc.poll() is None:
+        now = time.monotonic()
+        if now - last[0] > stall_s or now - start > cap_s:
+            proc.kill()
+            proc.wait()
+            stalled = now - last[0] > stall_s
+            why = f"printed nothing for {stall_s:.0f} s" if stalled else f"ran past {cap_s:.0f} s"
+            raise AssertionError(f"{' '.join(cmd)} {why}:\n{''.join(out['stdout'])[-3000:]}"
+                                 f"{''.join(out['stderr'])[-3000:]}")
+        time.sleep(0.2)
+    for t in pumps:
+        t.join()
+    return subprocess.CompletedProcess(cmd, proc.returncode, "".join(out["stdout"]), "".join(out["stderr"]))
 
 
 def free_udp_port() -> int:

@@ -18,9 +18,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_watched
 
 REPO = Path(__file__).resolve().parent.parent
-pytestmark = pytest.mark.e2e
+# the quick run is watched for hangs by run_watched (600 s of silence), not by a budget on its wall time
+pytestmark = [pytest.mark.e2e, pytest.mark.timeout(1800)]
 
 TARGETS = ("ax", "ay", "az", "dwx", "dwy", "dwz")
 CONTROLLERS = ("backstepping (learned)", "backstepping (true model)", "pid", "se3")
@@ -115,8 +117,8 @@ def _wait_for_line(proc: subprocess.Popen, pattern: str, timeout: float) -> list
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path]:
     out = tmp_path_factory.mktemp("paper") / "results"
-    proc = subprocess.run(_cmd("--quick", "--out", str(out), "--seed", "0"), capture_output=True, text=True,
-                          timeout=240, cwd=REPO, env=_env())
+    # a stage prints its line as it starts and its result as it ends: 600 s of silence is a hang
+    proc = run_watched(_cmd("--quick", "--out", str(out), "--seed", "0"), stall_s=600.0, cwd=REPO, env=_env())
     return proc, out
 
 
