@@ -92,7 +92,7 @@ class SelectionSettings:
     """The pick on held-out data: the smallest candidate with loss <= best*(1+rel_tol) + abs_tol*std(y)."""
 
     rel_tol: float = 0.02
-    abs_tol: float = 1e-6
+    abs_tol: float = 1e-6  # of the held-out target's spread: rounding level (identification.pareto)
     # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t) is not
     # identified by the flight, and not picked while an identified one exists (pareto.select)
     min_t: float = 5.0
