@@ -36,9 +36,9 @@ no-ground expressions. Flights from the ground lose the rows within the segmenta
 lift-off, as identification.segmentation drops them from real logs (there h -> 0, below the SITL's
 min_height, where no law in 1/h holds). The table goes to OUT/discovery.md and OUT/discovery.csv as well.
 Floors, for ours on every case: the true terms and no others (so at most 1.5x the true term count),
-coefficients within 5%, validation R^2 >= 0.9999 on every target, a lowest R^2 at least every baseline's, and a SITL flight of 60 s
-identified in under 2 minutes of CPU time (the wall time is printed beside it: on a loaded machine it is
-several times the CPU time). PASS only when every floor holds.
+coefficients within 5%, validation R^2 >= 0.9999 on every target, a lowest R^2 at least every baseline's,
+and a SITL flight of 60 s identified in under 2 minutes of CPU time (the wall time is printed beside it:
+on a loaded machine it is several times the CPU time). PASS only when every floor holds.
 
 Usage: python bench/discovery.py [--cases NAME,...] [--engines NAME,...] [--rows N] [--seed N]
                                  [--operon-generations N] [--train-duration S] [--out DIR] [--reuse-flights]
