@@ -121,7 +121,7 @@ class DiscoveryEngine:
         """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
         s = self.settings
         P = primitive_matrix(X, s.primitives)
-        space = grow_unary(s.primitives, s.operators, P)
+        space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers)
         unary = list(range(len(space)))
         if s.rungs >= 2 and "mul" in s.operators:
             grow_products(space, unary, unary, 2)

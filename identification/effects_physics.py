@@ -2,7 +2,9 @@
 
 The vehicle's equations (identification.true_model) in the body frame, in the primitive names of
 identification.body_frame, plus effects each switched on by a nonzero parameter:
-  thrust of rotor i     T_i/m = Ct/m a_i u_i^2 (1 + ground_effect / h^2) + linear_thrust u_i   (m/s^2)
+  thrust of rotor i     T_i/m = Ct/m a_i u_i^2 (1 + ground_effect / h^2) GE(h) + linear_thrust u_i   (m/s^2)
+                        GE(h) = 1 / (1 - (ground_effect_radius / (4 h))^2), the Cheeseman-Bennett law at the
+                        CG's height (no monomial of the primitives; 1 when ground_effect_radius is 0)
                         a_i = rotor_scale[i] (a weak rotor: a_i < 1)
   specific force FRD    f_b = (0, 0, -sum T_i/m) - Cd/m v_b,k |v_b,k| - rotor_drag sum(u_i) (ub, vb, 0)
                               - frame_drag |v_b| v_b                                            (m/s^2)
@@ -32,6 +34,7 @@ class Effects:
     rotor_drag: float = 0.0  # 1/rad: f_b,xy = -rotor_drag * sum(u_i) * (ub, vb)
     rotor_scale: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)  # per-rotor thrust factor
     ground_effect: float = 0.0  # m^2: thrust x (1 + ground_effect / h^2)
+    ground_effect_radius: float = 0.0  # m, rotor radius R: thrust x 1 / (1 - (R / (4 h))^2)
     frame_drag: float = 0.0  # 1/m: f_b = -frame_drag |v_b| v_b
     linear_thrust: float = 0.0  # m/(s rad): T_i/m += linear_thrust u_i
     quadratic_thrust: bool = True  # False: the thrust is linear in u alone (the u_i^2 part off)
@@ -50,6 +53,8 @@ def body_expressions(vehicle: VehicleConfig | str, effects: Effects = Effects())
     m, ct, cm = v.mass, v.thrust_coefficient, v.moment_coefficient
     F = sympy.Float
     ground = 1 + F(effects.ground_effect) / h**2 if effects.ground_effect else 1
+    if effects.ground_effect_radius:
+        ground = ground / (1 - F((effects.ground_effect_radius / 4.0) ** 2) / h**2)
     quad = 1.0 if effects.quadratic_thrust else 0.0
     # T_i / m (m/s^2), kept as sums of monomials
     thrust = [

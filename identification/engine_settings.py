@@ -69,6 +69,10 @@ class DiscoverySettings:
 
     primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
     operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
+    # 1/x of a positive primitive (the height) only where its smallest value on the fit rows is at least its
+    # median / inverse_span (identification.feature_space): a lift-off's rows at h -> 0 would own 1/h^2
+    inverse_span: float = 10.0
+    inverse_powers: int = 4  # 1/x .. 1/x^inverse_powers of such a primitive
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
     screen: int = 60  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3
@@ -88,7 +92,7 @@ class SelectionSettings:
     """The pick on held-out data: the smallest candidate with loss <= best*(1+rel_tol) + abs_tol*std(y)."""
 
     rel_tol: float = 0.02
-    abs_tol: float = 1e-4
+    abs_tol: float = 1e-6  # of the held-out target's spread: rounding level (identification.pareto)
     # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t) is not
     # identified by the flight, and not picked while an identified one exists (pareto.select)
     min_t: float = 5.0

@@ -2,7 +2,10 @@
 
 Each primitive carries a unit as exponents of (m, s) (identification.body_frame). Operators:
 - rung 1 (unary, on one primitive): x ("id"), x^2 ("pow"), |x| ("abs", where x takes both signs),
-  1/x and 1/x^2 ("inv", for a quantity physically bounded away from zero, the height, and > 0 in the data),
+  1/x, 1/x^2, ... 1/x^inverse_powers ("inv", for a quantity physically bounded away from zero, the height,
+  and bounded away from zero in the data too: its smallest value at least 1/inverse_span of its median, so
+  that no handful of rows (a lift-off at h -> 0) makes 1/x^k many orders of magnitude above its typical
+  value and owns the least squares; a series in 1/h times the thrust approximates a ground-effect law),
   sin x and cos x ("sincos", only for a dimensionless x),
   the norm sqrt(sum x_i^2) of a vector group ("norm", only when every member has the same unit: adding unlike
   units is invalid); the signed sums sum_i s_i x_i and sum_i s_i x_i^2 (s_i = +-1) over a group of like
@@ -52,9 +55,9 @@ def power_unit(unit: Unit, p: int) -> Unit:
 class Recipe:
     """How a feature's column is computed: op over primitive columns (unary) or parent features (mul)."""
 
-    op: str  # id, pow2, abs, inv1, inv2, sin, cos, norm, sum1, sum2, mul
+    op: str  # id, pow2, abs, inv, sin, cos, norm, sum1, sum2, mul
     args: tuple[int, ...]  # primitive indices (unary, norm, sums) or feature indices (mul)
-    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument
+    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument; inv: (the power,)
 
 
 @dataclass
@@ -107,10 +110,8 @@ class FeatureSpace:
                         v = x * x
                     elif r.op == "abs":
                         v = np.abs(x)
-                    elif r.op == "inv1":
-                        v = 1.0 / x
-                    elif r.op == "inv2":
-                        v = 1.0 / (x * x)
+                    elif r.op == "inv":
+                        v = x ** -float(r.signs[0])
                     elif r.op == "sin":
                         v = np.sin(x)
                     elif r.op == "cos":
@@ -131,8 +132,15 @@ class FeatureSpace:
         return out
 
 
-def grow_unary(primitives: Sequence[str], operators: Sequence[str], P: np.ndarray) -> FeatureSpace:
-    """Rung 1: each primitive and the unary operators that are valid for its unit and its range in P."""
+def grow_unary(
+    primitives: Sequence[str],
+    operators: Sequence[str],
+    P: np.ndarray,
+    inverse_span: float = 10.0,
+    inverse_powers: int = 2,
+) -> FeatureSpace:
+    """Rung 1: each primitive and the unary operators that are valid for its unit and its range in P
+    (inverse_span: 1/x only where min(x) >= median(x) / inverse_span, module docstring)."""
     unknown = [o for o in operators if o not in OPERATORS]
     if unknown:
         raise ValueError(f"unknown operators {unknown} (known: {', '.join(OPERATORS)})")
@@ -163,8 +171,11 @@ def grow_unary(primitives: Sequence[str], operators: Sequence[str], P: np.ndarra
         if "abs" in operators and np.any(x < 0) and np.any(x > 0):
             space._add(sympy.Abs(s), unit, 1, Recipe("abs", (k,)))
         if "inv" in operators and PRIMITIVES[name].positive and np.all(x > 0):
-            space._add(1 / s, power_unit(unit, -1), 1, Recipe("inv1", (k,)))
-            space._add(1 / s**2, power_unit(unit, -2), 1, Recipe("inv2", (k,)))
+            if x.min() * inverse_span >= np.median(x):
+                for p in range(1, inverse_powers + 1):
+                    space._add(1 / s**p, power_unit(unit, -p), 1, Recipe("inv", (k,), (p,)))
+            else:
+                space._prune("inverse of a quantity that comes near zero in the data")
         if "sincos" in operators:
             for fn, op in ((sympy.sin, "sin"), (sympy.cos, "cos")):
                 u = combine_units(op, unit)
