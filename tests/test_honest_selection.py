@@ -123,10 +123,18 @@ def test_a_confounded_flight_names_the_terms_it_cannot_separate_and_the_excitati
     model = identify(_confounded_flight(2500, 7, tied=True), engine="sparse", targets=["dwx"], progress=False)
     err = capsys.readouterr().err
     info = load_model(save_model(model, tmp_path / "m.yaml")).extra["identifiability"]["targets"]["dwx"]
+    f2 = "u2**2 + u3**2 - u1**2 - u4**2"
+    # the roll torque and the rate are named as tied: both kept in the model (on these noise-free targets the
+    # pick may separate them) and flagged not identifiable, or one kept and the other named as confused with it
     pairs = {(c["term"], c["candidate"]) for c in info["confused_with_candidates"]}
-    assert ("u2**2 + u3**2 - u1**2 - u4**2", "wx") in pairs, info
+    flagged = {c["term"]: c for c in info.get("not_identifiable", [])}
+    if (f2, "wx") in pairs:
+        assert "cannot be told apart" in err and "with wx" in err
+    else:
+        assert {f2, "wx"} <= set(flagged), info
+        assert flagged[f2]["vif"] > 100 and flagged["wx"]["vif"] > 100
+        assert "not identifiable from this flight" in err and "tied most to wx" in err
     assert all(c["vif_with_it"] == "inf" or c["vif_with_it"] > 100 for c in info["confused_with_candidates"])
-    assert "cannot be told apart" in err and "with wx" in err
     assert "excite each motor independently" in info["excitation"] and "excite each motor" in err
 
     free = _confounded_flight(2500, 7, tied=False)
