@@ -26,7 +26,8 @@ in the primitives ub vb wb wx wy wz u1..u4 h) against the true body-frame physic
 (identification.true_model.true_body_expressions, or the synthetic case's written physics) for every model
 that has them (ours); the others (baselines, learning NED directly) are compared on the six NED targets.
 The NED expansion of |v| v into R (R^T v) |R^T v| is not a structure anybody learns; in the body frame frame
-drag is one monomial. A true term that the training flight cannot pin down even given the true structure
+drag is one monomial. Every engine's model is written to OUT/models/<case>-<engine>.yaml. A true term that
+the training flight cannot pin down even given the true structure
 (least squares on every true term, t ratio below selection.min_t = 5, the t the engine's own pick demands;
 unidentifiable_terms) is counted apart ("not identifiable"): not missing when left out, not held to the
 coefficient floor; ours lists the ones it left out. With realistic sensors these are the terms below the
@@ -85,6 +86,7 @@ from identification.model_file import (  # noqa: E402
     VARIABLE_NAMES,
     Model,
     expression_to_string,
+    save_model,
 )
 from identification.true_model import motor_combinations_sym, true_body_expressions, true_model  # noqa: E402
 from identification.validate import (  # noqa: E402
@@ -525,10 +527,14 @@ def main() -> int:
             print(f"  true terms this training flight cannot pin down (t < {SelectionSettings().min_t:g} "
                   f"given the true structure): {listed}")
         case_rows = []
+        models_dir = out / "models"
+        models_dir.mkdir(exist_ok=True)
+        slug = "".join(ch if ch.isalnum() else "-" for ch in case.name)
         for engine in engines:
             start, cpu_start = time.perf_counter(), time.process_time()
             model = fit(engine, train, args.seed, gravity, args.budget, args.operon_generations)
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+            save_model(model, models_dir / f"{slug}-{engine}.yaml")  # to trace a row's terms afterwards
             row = score(case.name, engine, model, raw_val if weak_case else val, reference, body_reference,
                         wall, cpu, weak=weak_case, unidentifiable=hidden)
             if weak_case and engine == "discovery":  # ours, also learned in the weak form
@@ -538,6 +544,7 @@ def main() -> int:
                 model = identify(raw_train, budget=args.budget, seed=args.seed, progress=False,
                                  gravity=gravity, weak=WeakSettings())
                 wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+                save_model(model, models_dir / f"{slug}-discovery-weak.yaml")
                 row = score(case.name, "discovery-weak", model, raw_val, reference, body_reference, wall, cpu,
                             weak=True, unidentifiable=hidden)
             case_rows.append(row)
