@@ -246,9 +246,12 @@ def _output_path(text: str, flag: str) -> Path:
 
 
 def _load(
-    logs: list[str], targets_from: str, motor_curve: str | None, args: argparse.Namespace | None = None
+    logs: list[str], targets_from: str, motor_curve: str | None, args: argparse.Namespace | None = None,
+    gravity: float | None = None,
 ):
-    """Read, segment and join the logs, printing what was kept and every reason rows were dropped."""
+    """Read, segment and join the logs, printing what was kept and every reason rows were dropped; gravity
+    (m/s^2): what sensor targets add to the rotated specific force (the body-frame learning removes the
+    same; default 9.80665)."""
     from identification.dataset import load_datasets
     from identification.segmentation import parse_window
     from identification.weak_form import RAW_SENSOR_TARGETS
@@ -257,7 +260,7 @@ def _load(
     airborne = not getattr(args, "all_rows", False)
     dataset = load_datasets(
         logs, windows=windows or None, targets=targets_from, motor_curve=motor_curve, airborne=airborne,
-        rate_hz=getattr(args, "rate", None),
+        rate_hz=getattr(args, "rate", None), gravity=gravity,
         sensor_settings=RAW_SENSOR_TARGETS if getattr(args, "weak", False) and targets_from == "sensors"
         else None,
     )
@@ -335,9 +338,12 @@ def run_identify(args: argparse.Namespace) -> int:
         if args.engine not in ("default", "discovery"):
             raise UserError(f"--weak needs the default (discovery) engine, not {args.engine}",
                             hint="drop --weak or use --engine default")
-    dataset = _load(args.logs, args.targets_from, args.motor_curve, args)
-    pick = _load(args.pick_log, args.targets_from, args.motor_curve, args) if args.pick_log else None
-    check = _load(args.validate_log, args.targets_from, args.motor_curve, args) if args.validate_log else None
+    # sensor targets add the gravity the body-frame learning removes: the vehicle's (its accelerometer
+    # measures a - g with that g), else the standard one
+    dataset = _load(args.logs, args.targets_from, args.motor_curve, args, gravity)
+    pick = _load(args.pick_log, args.targets_from, args.motor_curve, args, gravity) if args.pick_log else None
+    check = (_load(args.validate_log, args.targets_from, args.motor_curve, args, gravity)
+             if args.validate_log else None)
 
     def split_roles():
         return assign_roles(dataset, pick=pick, validate=check, pick_fraction=args.holdout,
@@ -430,7 +436,8 @@ def run_validate(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} exists and is not a directory", hint="give a folder for the outputs")
     weak = _weak_settings(args)
-    dataset = _load([args.log], args.targets_from, args.motor_curve, args)
+    gravity = model.body.gravity if model.body is not None else None  # as the model was learned with
+    dataset = _load([args.log], args.targets_from, args.motor_curve, args, gravity)
     if dataset.u_from_throttle or ("motor_model" in model.engine and "throttle" in dataset.aux):
         from identification.motor_model import apply_thrust_curve, curve_from_dict
 

@@ -244,16 +244,31 @@ def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, floa
     model without a varying term. The VIF says how far the flight separates the terms at all: on noise-free
     closed-loop data a signed rotor combination written as three tied terms has t ~1e9 and VIF ~100.
     """
+    t, vif = term_t_ratios(columns, y)
+    if t is None:
+        return 0.0, float("inf")
+    measured = np.isfinite(vif)
+    if not measured.any():
+        return float("inf"), 1.0
+    return float(t[measured].min()), float(vif[measured].max())
+
+
+def term_t_ratios(columns: np.ndarray, y: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(t ratio |c_j| / se_j, VIF_j) of each column (k,) of the least-squares fit of y (N,) on columns (N,k),
+    with the effective sample size of term_identification; (None, [inf]) when there are fewer rows than
+    columns. A column that does not vary (a constant) is fitted but gets NaN for both; t is inf for every
+    column of an exact fit with a nonzero coefficient, 0 where a coefficient is 0."""
     a = np.asarray(columns, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
     a, y = a[ok], y[ok]
     if len(y) <= a.shape[1]:
-        return 0.0, float("inf")
+        return None, np.array([np.inf])
     std = a.std(axis=0)
     measured = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    full_t, full_vif = np.full(a.shape[1], np.nan), np.full(a.shape[1], np.nan)
     if not measured.any():
-        return float("inf"), 1.0
+        return full_t, full_vif
     scale = np.where(measured, std, np.maximum(np.abs(a).max(axis=0), 1e-300))
     z = a / scale  # unit spread (measured columns): least squares well scaled whatever the terms' units
     c = np.linalg.lstsq(z, y, rcond=None)[0]
@@ -261,13 +276,15 @@ def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, floa
     s = float(np.sqrt(np.mean(resid * resid)))
     vif = np.array([t.vif for t in column_collinearity(a, [str(j) for j in range(a.shape[1])]).terms])
     c = np.abs(c[measured])
-    largest_vif = float(np.max(vif)) if len(vif) else 1.0
+    full_vif[measured] = vif
     if s == 0.0:
-        return (float("inf") if np.all(c > 0) else 0.0), largest_vif
+        full_t[measured] = np.where(c > 0, np.inf, 0.0)
+        return full_t, full_vif
     n_eff = effective_rows(resid)
     with np.errstate(all="ignore"):
         t = c / (s * np.sqrt(vif) / np.sqrt(n_eff))
-    return float(np.nan_to_num(t, nan=0.0).min()), largest_vif
+    full_t[measured] = np.nan_to_num(t, nan=0.0)
+    return full_t, full_vif
 
 
 def describe(target: str, c: Collinearity) -> list[str]:

@@ -138,28 +138,44 @@ def step_interval_rows(
     )
     a_mean = (v[1:] - v[:-1]) / dt
     a_mid = a_mean
+    dw_mean = (w[1:] - w[:-1]) / dt
     if gravity is not None:
-        a_mid = _midpoint_acceleration(a_mean, xi[:, 6:9], xi[:, 9:12], dt[:, 0], gravity)
-    targets = np.concatenate((a_mid, (w[1:] - w[:-1]) / dt), axis=1)
+        a_mid = _midpoint_acceleration(a_mean, xi[:, 6:9], xi[:, 9:12], dt[:, 0], gravity, dw_mean)
+    targets = np.concatenate((a_mid, dw_mean), axis=1)
     u_mid = lagged_rms_speed(u[:-1], u[1:], ratio)
     return 0.5 * (t[:-1] + t[1:]), xi, u_mid, targets
 
 
 def _midpoint_acceleration(
-    a_mean: np.ndarray, euler: np.ndarray, rates: np.ndarray, dt: np.ndarray, gravity: float
+    a_mean: np.ndarray,
+    euler: np.ndarray,
+    rates: np.ndarray,
+    dt: np.ndarray,
+    gravity: float,
+    dw: np.ndarray | None = None,
 ) -> np.ndarray:
     """NED acceleration (M,3) m/s^2 at the step's midpoint attitude from its mean over the step.
 
     The body turns during a step: with the specific force f_b held and the rates w (FRD rad/s) constant,
     the mean of R(t) f_b is R_mid (I + [w]x^2 dt^2/24) f_b, not R_mid f_b (6.7e-4 of the thrust at 30 rad/s,
-    which the engines would fit with spurious |w| terms). So f_b = (I + [w]x^2 dt^2/24)^-1 R_mid^T (a - g e3).
+    which the engines would fit with spurious |w| terms). With the rates changing at dw (FRD rad/s^2, the
+    step's mean angular acceleration) the midpoint attitude (halfway between the ends' quaternions) is
+    itself turned by [dw] dt^2/8 and the mean is R_mid (I + ([w]x^2 - 2 [dw]x) dt^2/24) f_b: without that,
+    a per-motor PRBS (dw ~ 50 rad/s^2 under 10 m/s^2 of thrust) puts 3e-4 m/s^2 of the pitch torque into
+    fx, which the engines fit as spurious signed rotor terms. So f_b = (that matrix)^-1 R_mid^T (a - g e3).
     """
     r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
     g = np.array([0.0, 0.0, gravity])
     body = np.einsum("nji,nj->ni", r, a_mean - g)
-    p, q, s = rates[:, 0], rates[:, 1], rates[:, 2]
-    z = np.zeros_like(p)
-    k = np.stack((np.stack((z, -s, q), 1), np.stack((s, z, -p), 1), np.stack((-q, p, z), 1)), 1)
-    m = np.eye(3)[None] + (k @ k) * (dt**2 / 24.0)[:, None, None]
+    k = _cross_matrices(rates)
+    m = k @ k if dw is None else k @ k - 2.0 * _cross_matrices(dw)
+    m = np.eye(3)[None] + m * (dt**2 / 24.0)[:, None, None]
     body = np.linalg.solve(m, body[:, :, None])[:, :, 0]
     return np.einsum("nij,nj->ni", r, body) + g
+
+
+def _cross_matrices(v: np.ndarray) -> np.ndarray:
+    """[v]x (M,3,3) of vectors v (M,3): [v]x a = v x a."""
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    o = np.zeros_like(x)
+    return np.stack((np.stack((o, -z, y), 1), np.stack((z, o, -x), 1), np.stack((-y, x, o), 1)), 1)

@@ -124,8 +124,8 @@ def test_a_confounded_flight_names_the_terms_it_cannot_separate_and_the_excitati
     err = capsys.readouterr().err
     info = load_model(save_model(model, tmp_path / "m.yaml")).extra["identifiability"]["targets"]["dwx"]
     f2 = "u2**2 + u3**2 - u1**2 - u4**2"
-    # the roll torque and the rate are named as tied: both kept in the model (on these noise-free targets the
-    # pick may separate them) and flagged not identifiable, or one kept and the other named as confused with it
+    # the roll torque and the rate are named as tied: both kept in the model (on these noise-free targets
+    # the pick may separate them) and flagged not identifiable, or one kept, the other named confused with it
     pairs = {(c["term"], c["candidate"]) for c in info["confused_with_candidates"]}
     flagged = {c["term"]: c for c in info.get("not_identifiable", [])}
     if (f2, "wx") in pairs:

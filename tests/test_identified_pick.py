@@ -7,7 +7,7 @@ import pytest
 import sympy
 
 from identification.candidate import Candidate
-from identification.collinearity import term_identification, weakest_t
+from identification.collinearity import term_identification, term_t_ratios, weakest_t
 from identification.engine_settings import SelectionSettings
 from identification.pareto import select
 
@@ -84,3 +84,18 @@ def test_weakest_t_ignores_rows_that_are_not_finite(bad):
     cols = np.column_stack([a, b])
     cols[5, 0] = bad
     assert weakest_t(cols, y) > 1000
+
+
+def test_term_t_ratios_name_the_term_below_the_noise():
+    """Per-term t ratios, column by column: a term 1000x below the noise has t < 5 while its neighbours are
+    pinned down; a constant column gets NaN; the summary (term_identification) is their minimum."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    a, b, c = rng.standard_normal((3, n))
+    y = 2.0 * a - 1.0 * b + 1e-4 * c + 0.3 + 0.1 * rng.standard_normal(n)
+    cols = np.column_stack([np.ones(n), a, b, c])
+    t, vif = term_t_ratios(cols, y)
+    assert np.isnan(t[0]) and np.isnan(vif[0])
+    assert t[1] > 100 and t[2] > 100 and t[3] < 5
+    assert np.allclose(vif[1:], 1.0, atol=0.01)
+    assert term_identification(cols, y)[0] == pytest.approx(t[3])
