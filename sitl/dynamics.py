@@ -125,6 +125,11 @@ def make_derivative(vehicle: VehicleConfig, motors: Motors, mixer: QuadXMixer,
     return derivative
 
 
+# s: the accelerometer feels a touchdown as a constant deceleration over this long (the velocity the rigid
+# plane takes away within a substep, spread as landing gear and frame compliance spread it on a vehicle):
+# 1.5 m/s down reads 3.8 g for 40 ms, inside the IMU's 16 g, where one substep's impulse would read 150 g
+TOUCHDOWN_S = 0.04
+
 class Quadrotor:
     """A simulated quadrotor: reset it, then step(throttles) advances one exchange step (4 ms by default;
     step_usec, a divisor of 4000 us, for a simulator that steps faster, as ArduPilot's JSON one does)."""
@@ -153,6 +158,8 @@ class Quadrotor:
         self._s: list[float] = [0.0] * 17
         self._time_usec = 0
         self._on_ground = False
+        self._touchdown = (0.0, 0.0, 0.0)  # NED m/s^2 the accelerometer feels of the last touchdown
+        self._touchdown_left_usec = 0
         pos = vehicle.initial.position
         self.reset(position=pos, yaw=vehicle.initial.yaw)
 
@@ -196,6 +203,7 @@ class Quadrotor:
         self._cmd = speeds
         self._time_usec = 0
         self._on_ground = False
+        self._touchdown_left_usec = 0
         self._specific_force_at = (-1, 0)
         if self.vehicle.wind.active:  # the wind restarts with time (same seed: same wind)
             self._wind_model = Wind(self.vehicle.wind, EXCHANGE_STEP)
@@ -215,7 +223,10 @@ class Quadrotor:
         f = self._f
         apply_ground = self.ground.apply
         s = self._s
+        self._touchdown_left_usec = max(self._touchdown_left_usec - self.step_usec, 0)
         for _ in range(self.substeps):
+            flying = not self._on_ground
+            v = s[3], s[4], s[5]
             s = rk4_step(f, s, cmd, h, self._first_slope(s, cmd))
             qw, qx, qy, qz = s[6], s[7], s[8], s[9]
             n = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
@@ -224,6 +235,9 @@ class Quadrotor:
             s[8] = qy * n
             s[9] = qz * n
             self._on_ground = apply_ground(s)
+            if flying and self._on_ground:  # a touchdown: the plane took v away
+                self._touchdown = (-v[0] / TOUCHDOWN_S, -v[1] / TOUCHDOWN_S, -v[2] / TOUCHDOWN_S)
+                self._touchdown_left_usec = round(TOUCHDOWN_S * 1e6)
         self._s = s
         self._time_usec += self.step_usec
         if self._wind_model is not None:  # the wind over the next step, reported with this step's telemetry
@@ -336,9 +350,12 @@ class Quadrotor:
         s = self._s
         qw, qx, qy, qz = s[6], s[7], s[8], s[9]
         if self._on_ground:
-            # a = 0 at rest: R^T (0, 0, -g). The rigid plane stops a touchdown within a substep and the
-            # accelerometer does not see it (an impulse that short, clipped at 16 g, upset ArduCopter's EKF
-            # more than none: a compliant contact model is what would give a landing its signature)
+            # a = 0 at rest: R^T (0, 0, -g); after a touchdown its deceleration over TOUCHDOWN_S (the rigid
+            # plane stops the vehicle within a substep; an IMU that never felt it left an autopilot's
+            # estimator moving on into the ground, and ArduCopter's EKF flew the next flight 0.2-0.5 m low)
+            if self._touchdown_left_usec > 0:
+                ax, ay, az = self._touchdown
+                return _to_body(qw, qx, qy, qz, ax, ay, az - self._g)
             return _to_body(qw, qx, qy, qz, 0.0, 0.0, -self._g)
         if not self._paper:  # R^T (a - g e3) from the derivative: every effect's force, already summed
             if self._specific_force_at == (self._time_usec, id(s)):

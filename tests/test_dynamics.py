@@ -7,8 +7,9 @@ import math
 
 import pytest
 
+from bridge.messages import ACCEL_LIMIT
 from bridge.vehicle import DragConfig, SimulationConfig, VehicleConfig, load_vehicle
-from sitl.dynamics import Quadrotor
+from sitl.dynamics import TOUCHDOWN_S, Quadrotor
 from sitl.mixer import QuadXMixer
 
 DT = 0.004
@@ -176,6 +177,27 @@ def test_ground_contact_rest_and_take_off(vehicle):
         zs.append(quad.position[2])
     assert quad.on_ground and quad.position[2] == 0.0
     assert max(zs) == 0.0
+
+
+def test_touchdown_is_felt_by_the_accelerometer(vehicle):
+    """The plane stops a falling vehicle within a substep; an ideal accelerometer reads the velocity it took
+    away as a deceleration spread over TOUCHDOWN_S (all of it, within the IMU's range), then rest."""
+    quad = Quadrotor(vehicle)
+    quad.reset(position=(0.0, 0.0, -0.1))
+    vz = 0.0
+    while not quad.on_ground:
+        vz = quad.velocity[2]
+        quad.step([0.0] * 4)
+    dt = quad.step_usec * 1e-6
+    felt = []  # m/s^2 up, beyond gravity, each step from the touchdown on
+    while len(felt) < round(2 * TOUCHDOWN_S / dt):
+        felt.append(-quad.specific_force_body()[2] - 9.8)
+        quad.step([0.0] * 4)
+    assert 1.0 < vz < 1.5  # m/s down after a 0.1 m fall
+    # the velocity at the touchdown substep's start lies between the step's start and end speeds
+    assert vz - 1e-9 <= sum(felt) * dt <= vz + 9.8 * dt + 1e-9
+    assert max(felt) < ACCEL_LIMIT and min(felt) >= 0.0
+    assert felt[-1] == pytest.approx(0.0, abs=1e-12)  # at rest again: (0, 0, -g)
 
 
 def test_no_ground_falls_through_zero(vehicle):
