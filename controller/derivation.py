@@ -820,7 +820,14 @@ def _derive(exprs: dict[str, sympy.Expr], w_max: float) -> DerivedLaw:
     az_fn = sympy.lambdify(list(XI) + list(U), exprs["az"], modules="math")
 
     def az_at(speed: float) -> float:
-        return float(az_fn(*rest, speed, speed, speed, speed))
+        try:
+            return float(az_fn(*rest, speed, speed, speed, speed))
+        except (ValueError, ZeroDivisionError, OverflowError) as exc:
+            raise UserError(
+                f"the model's z'' cannot be evaluated at rest at the origin (all states 0, so the height "
+                f"above ground h = 0; rotor speeds {speed:.1f} rad/s): {exc}",
+                hint=f"az = {exprs['az']}; the law is derived about hover at the origin: identify a model "
+                     "defined there (without 1/h terms: leave 'inv' out of discovery.operators)") from None
 
     gravity = az_at(0.0)
     if not (math.isfinite(gravity) and gravity > 0.0):

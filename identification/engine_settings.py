@@ -72,7 +72,10 @@ class DiscoverySettings:
     # 1/x of a positive primitive (the height) only where its smallest value on the fit rows is at least its
     # median / inverse_span (identification.feature_space): a lift-off's rows at h -> 0 would own 1/h^2
     inverse_span: float = 10.0
-    inverse_powers: int = 4  # 1/x .. 1/x^inverse_powers of such a primitive
+    # 1/x .. 1/x^inverse_powers of such a primitive; 4 resolves a ground-effect law near the ground better
+    # (--settings), but on the README's paper-train flight (h 70-200 m) the larger pool crowded the screening
+    # and the pick took u4^2/h for the thrust (with 2: the true -ct sum(u_i^2))
+    inverse_powers: int = 2
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
     screen: int = 60  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3

@@ -176,6 +176,13 @@ def test_thrust_not_depending_on_the_motors_is_refused(true_exprs):
     _refused(exprs, ["cannot be inverted", "az does not depend on the motors"])
 
 
+def test_thrust_undefined_at_the_origin_is_a_clear_error(true_exprs):
+    # a learned 1/h term (h = -z): the law is derived about hover at the origin, where it divides by zero
+    exprs = dict(true_exprs)
+    exprs["az"] = exprs["az"] + 0.005 * S["u4"] ** 2 / S["z"]
+    _refused(exprs, ["cannot be evaluated at rest at the origin", "division by zero"])
+
+
 def test_roll_without_f2_is_refused(true_exprs):
     exprs = dict(true_exprs)
     exprs["dwx"] = -0.697 * S["wy"] * S["wz"]
