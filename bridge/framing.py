@@ -41,6 +41,8 @@ MIN_FRAME_V2 = HEADER_LEN_V2 + 2  # empty payload never occurs, but the header+c
 _HEADER_V2 = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
 _Header = mavlink.MAVLink_header
+# the CRC'd header after the start byte: length, incompat and compat flags, seq, system, component, message id
+_FRAME_HEAD = struct.Struct("<BBBBBB3s")
 
 
 @dataclass(frozen=True)
@@ -258,6 +260,48 @@ def pack_frame(
     if signing is not None:
         frame = signing.sign(frame)
     return frame
+
+
+def kind(cls: type) -> tuple[bytes, bytes, Callable[..., bytes]]:
+    """(3-byte message id, CRC extra byte, payload packer in wire order) of a pymavlink message class."""
+    return cls.id.to_bytes(3, "little"), bytes([cls.crc_extra]), cls.unpacker.pack
+
+
+def part_of(msg: object) -> tuple[bytes, bytes, bytes]:
+    """(3-byte message id, CRC extra byte, payload) of a pymavlink message, for Framer.frames."""
+    cls = type(msg)
+    return cls.id.to_bytes(3, "little"), bytes([cls.crc_extra]), payload_bytes(msg)
+
+
+class Framer:
+    """MAVLink 2 frames straight from payloads, for one system and component.
+
+    The sequence number lives in `counter.seq` (a UdpLink, so that frames it packs itself share it).
+    """
+
+    def __init__(self, system_id: int, component_id: int, counter: object, signing: Signing | None = None):
+        self.counter = counter
+        self.signing = signing
+        # Header bytes 2..3 (incompat flags, compat flags) and 5..6 (system, component ids) never change.
+        self._flags = 0x01 if signing is not None else 0
+        self._system_id = system_id
+        self._component_id = component_id
+
+    def frames(self, parts: list[tuple[bytes, bytes, bytes]]) -> list[bytes]:
+        """Frames of (3-byte message id, CRC extra, payload) parts, numbered in sequence."""
+        seq = self.counter.seq
+        flags, signing = self._flags, self.signing
+        system_id, component_id = self._system_id, self._component_id
+        head, crc_bytes, crc = _FRAME_HEAD.pack, _CRC.pack, _mcrf4xx
+        out = []
+        for msg_id, extra, payload in parts:
+            payload = payload.rstrip(b"\x00") or b"\x00"
+            tail = head(len(payload), flags, 0, seq, system_id, component_id, msg_id) + payload
+            frame = b"\xfd" + tail + crc_bytes(crc(extra, crc(tail)))
+            out.append(frame if signing is None else signing.sign(frame))
+            seq = (seq + 1) & 0xFF
+        self.counter.seq = seq
+        return out
 
 
 def decode_frame(frame: bytes, header_len: int, signature_len: int, spec: MessageSpec) -> Any:

@@ -14,12 +14,15 @@ from pathlib import Path
 from typing import Any
 
 from bridge.errors import UserError
+from bridge.framing import Framer, kind
 from bridge.link import Endpoint, UdpLink, parse_endpoint
 from bridge.messages import (
+    ARMED_MODE,
+    LOCKSTEP_FLAG,
+    HilActuatorControls,
     Observation,
     ObservationAssembler,
     encode_heartbeat,
-    encode_hil_actuator_controls,
     sanitize_throttles,
 )
 from bridge.signing import Signing
@@ -32,6 +35,7 @@ STEP_USEC = 4000
 # long after our reply went out means the reply was lost: send it again. (A copy arriving sooner was queued
 # while we computed the reply, before the SITL could have seen it.)
 RESEND_GUARD_S = 0.05
+_UNUSED_CONTROLS = (0.0,) * 12  # HIL_ACTUATOR_CONTROLS controls[4..15]
 
 
 class LinkLost(UserError):
@@ -71,13 +75,16 @@ class LockstepClient:
             tlog=str(tlog) if isinstance(tlog, Path) else tlog,
         )
         self.assembler = ObservationAssembler()
+        # HIL_ACTUATOR_CONTROLS packed straight from floats (wire order: time_usec, flags, controls[16], mode)
+        self._framer = Framer(system_id, component_id, self.link, self.link.signing)
+        self._command_kind = kind(HilActuatorControls)
         # poll(0) tells whether more is queued for a third of the cost of a recvfrom that finds nothing
         self._queued = select.poll()
         self._queued.register(self.link.fileno(), select.POLLIN)
         self.observation: Observation | None = None
         self.steps = 0
         self.resends = 0  # commands sent again because the SITL re-sent the step they answer
-        self._command: tuple[int, Any] | None = None  # (time_usec answered, HIL_ACTUATOR_CONTROLS message)
+        self._command: tuple[int, bytes] | None = None  # (time_usec answered, HIL_ACTUATOR_CONTROLS payload)
         self._repeated = False  # the last frames read held a copy of the current step
         self.status_texts: list[str] = []  # STATUSTEXTs from the SITL (failsafe reasons), in order
 
@@ -113,10 +120,11 @@ class LockstepClient:
             raise RuntimeError("LockstepClient.step() before connect()")
         if len(throttles) != 4:
             raise ValueError(f"step() takes 4 motor throttles, got {len(throttles)}")
-        clean = list(sanitize_throttles(throttles)[0])  # the SITL's rule: NaN/inf -> 0, clipped to [0, 1]
-        cmd = encode_hil_actuator_controls(current.time_usec, clean)
-        self._command = (current.time_usec, cmd)
-        self.link.send([cmd])
+        clean = sanitize_throttles(throttles)[0]  # the SITL's rule: NaN/inf -> 0, clipped to [0, 1]
+        msg_id, extra, pack = self._command_kind
+        payload = pack(current.time_usec, LOCKSTEP_FLAG, *clean, *_UNUSED_CONTROLS, ARMED_MODE)
+        self._command = (current.time_usec, payload)
+        self.link.send_frames(self._framer.frames([(msg_id, extra, payload)]))
         obs = self.wait_observation(self.timeout)
         self.steps += 1
         return obs
@@ -152,7 +160,8 @@ class LockstepClient:
                 if self._repeated and self._command is not None and self._command[0] == after:
                     now = time.monotonic()
                     if now >= resend_after:
-                        link.send([self._command[1]])
+                        msg_id, extra, _ = self._command_kind
+                        link.send_frames(self._framer.frames([(msg_id, extra, self._command[1])]))
                         self.resends += 1
                         resend_after = now + RESEND_GUARD_S
             remaining = deadline - time.monotonic()

@@ -30,13 +30,14 @@ from pathlib import Path
 from typing import TextIO
 
 from bridge.errors import UserError
+from bridge.framing import Framer, kind
 from bridge.link import Endpoint
 from bridge.messages import ARMED_MODE, LOCKSTEP_FLAG, mavlink
 from bridge.tlog import TlogWriter
 from bridge.vehicle import VehicleConfig
 from sitl.ardupilot_json import BadPacket, sensor_json, servo_motors, throttles_from_pwm
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
-from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, Framer, HilEncoder, kind
+from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, HilEncoder
 from sitl.sensors import SensorModel
 
 JSON_STEP_USEC = 1000  # physics step per servo frame: ArduCopter's 400 Hz loop needs a gyro at >= 720 Hz

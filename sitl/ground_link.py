@@ -15,8 +15,9 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge.errors import UserError
+from bridge.framing import Framer, kind, part_of
 from bridge.signing import Signing
-from sitl.hil import Framer, int16_of, int32_of, kind, lat_e7, lon_e7, part_of
+from sitl.hil import int16_of, int32_of, lat_e7, lon_e7
 
 SYSTEM_ID = 1
 COMPONENT_ID = 1  # MAV_COMP_ID_AUTOPILOT1: ground tools look for the autopilot here

@@ -14,17 +14,13 @@ and packing them through bridge.messages costs about 4x more, and this runs 5000
 from __future__ import annotations
 
 import math
-import struct
-from collections.abc import Callable
 
-from fastcrc import crc16
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge import messages
-from bridge.framing import payload_bytes
+from bridge.framing import Framer, kind
 from bridge.geodesy import LocalFrame
 from bridge.link import UdpLink
-from bridge.signing import Signing
 from bridge.vehicle import HomeConfig
 from sitl.dynamics import Quadrotor
 from sitl.sensors import SensorFrame
@@ -32,10 +28,6 @@ from sitl.sensors import SensorFrame
 HIL_COMPONENT_ID = 51  # the simulator's component id on the HIL link
 SYSTEM_ID = 1
 
-_mcrf4xx = crc16.mcrf4xx
-# the CRC'd header after the start byte: length, incompat and compat flags, seq, system, component, message id
-_HEAD = struct.Struct("<BBBBBB3s")
-_CRC = struct.Struct("<H")
 _HSQ = mavlink.MAVLink_hil_state_quaternion_message
 _LPN = mavlink.MAVLink_local_position_ned_message
 _RPM = mavlink.MAVLink_raw_rpm_message
@@ -99,48 +91,6 @@ def lat_e7(deg: float) -> int:
 def lon_e7(deg: float) -> int:
     """Longitude in deg to the degE7 int of MAVLink."""
     return int32_of(deg * 1e7, -LON_E7_MAX, LON_E7_MAX)
-
-
-def kind(cls: type) -> tuple[bytes, bytes, Callable[..., bytes]]:
-    """(3-byte message id, CRC extra byte, payload packer in wire order) of a pymavlink message class."""
-    return cls.id.to_bytes(3, "little"), bytes([cls.crc_extra]), cls.unpacker.pack
-
-
-def part_of(msg: object) -> tuple[bytes, bytes, bytes]:
-    """(3-byte message id, CRC extra byte, payload) of a pymavlink message, for Framer.frames."""
-    cls = type(msg)
-    return cls.id.to_bytes(3, "little"), bytes([cls.crc_extra]), payload_bytes(msg)
-
-
-class Framer:
-    """MAVLink 2 frames straight from payloads, for one system and component.
-
-    The sequence number lives in `counter.seq` (a UdpLink, so that frames it packs itself share it).
-    """
-
-    def __init__(self, system_id: int, component_id: int, counter: object, signing: Signing | None = None):
-        self.counter = counter
-        self.signing = signing
-        # Header bytes 2..3 (incompat flags, compat flags) and 5..6 (system, component ids) never change.
-        self._flags = 0x01 if signing is not None else 0
-        self._system_id = system_id
-        self._component_id = component_id
-
-    def frames(self, parts: list[tuple[bytes, bytes, bytes]]) -> list[bytes]:
-        """Frames of (3-byte message id, CRC extra, payload) parts, numbered in sequence."""
-        seq = self.counter.seq
-        flags, signing = self._flags, self.signing
-        system_id, component_id = self._system_id, self._component_id
-        head, crc_bytes, crc = _HEAD.pack, _CRC.pack, _mcrf4xx
-        out = []
-        for msg_id, extra, payload in parts:
-            payload = payload.rstrip(b"\x00") or b"\x00"
-            tail = head(len(payload), flags, 0, seq, system_id, component_id, msg_id) + payload
-            frame = b"\xfd" + tail + crc_bytes(crc(extra, crc(tail)))
-            out.append(frame if signing is None else signing.sign(frame))
-            seq = (seq + 1) & 0xFF
-        self.counter.seq = seq
-        return out
 
 
 class HilEncoder:

@@ -9,7 +9,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from bridge import messages as M
-from bridge.framing import pack_frame, parse_datagram
+from bridge.framing import pack_frame, parse_datagram, split_datagram
 from bridge.stats import LinkStats
 
 
@@ -205,6 +205,20 @@ def test_observation_assembler_yields_one_observation_per_hil_sensor():
     np.testing.assert_allclose(first.imu.gyro, [0.1, 0.2, 0.3], rtol=1e-6)
     assert first.gps is None and second.gps is not None and second.gps.alt == pytest.approx(503.5)
     assert [m.get_type() for m in second.extras] == ["STATUSTEXT"]
+
+
+def test_observation_wind_is_the_wind_cov_of_its_own_step_from_frames_and_from_messages():
+    wind = mavlink.MAVLink_wind_cov_message(8000, 5.0, -1.5, 0.25, 1.0, 0.5, 500.0, 0.0, 0.0)
+    stale = mavlink.MAVLink_wind_cov_message(4000, 9.0, 9.0, 9.0, 1.0, 0.5, 500.0, 0.0, 0.0)
+    msgs = _wire(*_step(4000), *_step(8000)[:-1], wind, _step(8000)[-1],
+                 *_step(12000)[:-1], stale, _step(12000)[-1])
+    data = b"".join(pack_frame(m, i, 1, 51) for i, m in enumerate(msgs))
+    checked = split_datagram(data, LinkStats())
+    for obs in (M.ObservationAssembler().feed(msgs), M.ObservationAssembler().feed_frames(checked)):
+        assert [o.time_usec for o in obs] == [4000, 8000, 12000]
+        assert obs[0].wind is None and obs[2].wind is None  # no WIND_COV, or one of another step
+        np.testing.assert_allclose(obs[1].wind, [5.0, -1.5, 0.25])
+        assert all(not o.extras for o in obs)  # WIND_COV is part of the step, not an extra
 
 
 def test_observation_assembler_does_not_mix_steps():

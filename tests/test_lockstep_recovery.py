@@ -15,7 +15,7 @@ IDLE = [0.3] * 4  # below hover: the vehicle stays on the ground
 
 
 class DropOnce:
-    """Stands in for a UDP link's send: the next `arm()`ed datagram is lost (as UDP may lose it)."""
+    """Stands in for a UDP link's send_frames: the next `arm()`ed datagram is lost (as UDP may lose it)."""
 
     def __init__(self, send):
         self._send = send
@@ -37,8 +37,8 @@ class DropOnce:
 def test_a_lost_reply_is_sent_again_when_the_sitl_resends_its_step(start_sitl, lost_at_step):
     sitl = start_sitl("--sensors", "ideal", "--lockstep-timeout", "0.5")
     with LockstepClient(sitl.hil, timeout=2.0) as client:
-        loss = DropOnce(client.link.send)
-        client.link.send = loss
+        loss = DropOnce(client.link.send_frames)
+        client.link.send_frames = loss
         obs = client.connect(10.0)
         for _ in range(lost_at_step):
             obs = client.step(IDLE)

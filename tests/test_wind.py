@@ -128,9 +128,9 @@ def test_the_sitl_reports_the_true_wind_in_wind_cov_and_its_log(start_sitl, tmp_
         client.connect(10.0)
         for _ in range(150):
             obs = client.step([throttle] * 4)
-            cov = [m for m in obs.extras if m.get_type() == "WIND_COV"]
-            assert len(cov) == 1 and cov[0].time_usec == obs.time_usec
-            reported.append((cov[0].wind_x, cov[0].wind_y, cov[0].wind_z))
+            assert obs.wind is not None  # the step's WIND_COV, matched by time_usec
+            assert not [m for m in obs.extras if m.get_type() == "WIND_COV"]
+            reported.append(tuple(obs.wind))
     reported = np.array(reported)
     np.testing.assert_allclose(reported, expected.astype(np.float32), rtol=1e-6, atol=1e-6)
     assert reported[:, 1].max() > 2.0  # the gust went by
