@@ -130,12 +130,6 @@ def ceiling_rate(steps: int) -> tuple[float, float]:
             proc.kill()
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process, s (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -146,8 +140,12 @@ def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, fl
     """(steps/s, SITL CPU us/step, companion CPU us/step): `quadsr sitl` in lockstep with a LockstepClient."""
     from bridge.lockstep import LockstepClient
 
+    # A ground station that listens (never read here: the kernel drops what overflows its buffer). A closed
+    # port would make the kernel answer each 50 Hz telemetry datagram with an ICMP port-unreachable.
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", 0))
     cmd = [sys.executable, "-m", "quadsr.cli", "sitl", "--hil", "udp:127.0.0.1:0",
-           "--gcs", f"udp:127.0.0.1:{_free_port()}", "--status-interval", "0", *extra]
+           "--gcs", f"udp:127.0.0.1:{gcs.getsockname()[1]}", "--status-interval", "0", *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()
@@ -171,6 +169,7 @@ def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, fl
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
+        gcs.close()
 
 
 def main() -> int:
