@@ -66,6 +66,9 @@ def check_settings(settings: DiscoverySettings) -> None:
         )
     if not settings.primitives:
         raise UserError("discovery settings: no primitives", hint=f"choose from {', '.join(PRIMITIVES)}")
+    if not 0.0 <= settings.abs_sign_share <= 1.0:
+        raise UserError(f"discovery settings: key 'abs_sign_share' must be in [0, 1], got "
+                        f"{settings.abs_sign_share}", hint="0.05: |x| only where x reaches both signs")
 
 
 class _Columns:
@@ -121,7 +124,8 @@ class DiscoveryEngine:
         """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
         s = self.settings
         P = primitive_matrix(X, s.primitives)
-        space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers)
+        space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers,
+                           s.abs_sign_share)
         unary = list(range(len(space)))
         if s.rungs >= 2 and "mul" in s.operators:
             grow_products(space, unary, unary, 2)

@@ -76,6 +76,9 @@ class DiscoverySettings:
     # (--settings), but on the README's paper-train flight (h 70-200 m) the larger pool crowded the screening
     # and the pick took u4^2/h for the thrust (with 2: the true -ct sum(u_i^2))
     inverse_powers: int = 2
+    # |x| only where x takes both signs: the smaller side's extent at least this share of the larger
+    # (identification.feature_space); otherwise |x| = +-x on nearly every row and x stands for it
+    abs_sign_share: float = 0.05
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
     screen: int = 60  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3

@@ -1,7 +1,10 @@
 """Candidate features grown from primitives by operators, with dimensional analysis (SISSO-style rungs).
 
 Each primitive carries a unit as exponents of (m, s) (identification.body_frame). Operators:
-- rung 1 (unary, on one primitive): x ("id"), x^2 ("pow"), |x| ("abs", where x takes both signs),
+- rung 1 (unary, on one primitive): x ("id"), x^2 ("pow"), |x| ("abs", where x takes both signs in the
+  data: the smaller side reaches at least `abs_sign_share` of the larger; a yaw rate that keeps its sign
+  but for a few near-zero samples makes |x| equal to +-x on all but those rows, so no flight of that kind
+  tells a law in |x| from one in x, and the simpler x stands),
   1/x, 1/x^2, ... 1/x^inverse_powers ("inv", for a quantity physically bounded away from zero, the height,
   and bounded away from zero in the data too: its smallest value at least 1/inverse_span of its median, so
   that no handful of rows (a lift-off at h -> 0) makes 1/x^k many orders of magnitude above its typical
@@ -138,9 +141,11 @@ def grow_unary(
     P: np.ndarray,
     inverse_span: float = 10.0,
     inverse_powers: int = 2,
+    abs_sign_share: float = 0.05,
 ) -> FeatureSpace:
     """Rung 1: each primitive and the unary operators that are valid for its unit and its range in P
-    (inverse_span: 1/x only where min(x) >= median(x) / inverse_span, module docstring)."""
+    (inverse_span: 1/x only where min(x) >= median(x) / inverse_span; abs_sign_share: |x| only where
+    min(-min(x), max(x)) >= abs_sign_share * max|x|; module docstring)."""
     unknown = [o for o in operators if o not in OPERATORS]
     if unknown:
         raise ValueError(f"unknown operators {unknown} (known: {', '.join(OPERATORS)})")
@@ -169,7 +174,11 @@ def grow_unary(
         if "pow" in operators:
             space._add(s**2, power_unit(unit, 2), 1, Recipe("pow2", (k,)))
         if "abs" in operators and np.any(x < 0) and np.any(x > 0):
-            space._add(sympy.Abs(s), unit, 1, Recipe("abs", (k,)))
+            low, high = -float(x.min()), float(x.max())
+            if min(low, high) >= abs_sign_share * max(low, high):
+                space._add(sympy.Abs(s), unit, 1, Recipe("abs", (k,)))
+            else:
+                space._prune("abs of a quantity that keeps its sign in the data")
         if "inv" in operators and PRIMITIVES[name].positive and np.all(x > 0):
             if x.min() * inverse_span >= np.median(x):
                 for p in range(1, inverse_powers + 1):

@@ -96,6 +96,23 @@ def test_units_pruning_never_builds_sin_of_a_length_or_unlike_sums():
     assert combine_units("mul", PRIMITIVES["u1"].unit, PRIMITIVES["ub"].unit) == (1, -2)
 
 
+def test_abs_only_for_a_quantity_that_takes_both_signs():
+    from identification.feature_space import grow_unary
+
+    rng = np.random.default_rng(3)
+    both = rng.uniform(-1.0, 1.0, 500)
+    one_sided = rng.uniform(0.0, 1.2, 500)
+    one_sided[::50] = -1e-3  # a yaw rate that keeps its sign but for a few samples near zero
+    P = np.column_stack([both, one_sided])
+    space = grow_unary(("wx", "wz"), ("abs",), P)
+    built = {str(e) for e in space.expressions}
+    assert "Abs(wx)" in built and "Abs(wz)" not in built  # |wz| = wz on all but 10 rows: not separable
+    assert space.pruned["abs of a quantity that keeps its sign in the data"] == 1
+    # a real excursion to the other side (here 30 % of the larger side) keeps |x|
+    P[::50, 1] = -0.36
+    assert "Abs(wz)" in {str(e) for e in grow_unary(("wx", "wz"), ("abs",), P).expressions}
+
+
 def test_genetic_programming_always_runs_and_the_same_seed_gives_the_same_model():
     settings = DiscoverySettings(rounds=2, operon_population=60)
     runs = []
