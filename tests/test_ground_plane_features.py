@@ -16,7 +16,7 @@ import numpy as np
 import sympy
 
 from bridge.vehicle import load_vehicle
-from identification.body_frame import PRIMITIVE_SYMBOLS, primitive_matrix
+from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns, primitive_matrix, to_variables
 from identification.discovery import DiscoveryEngine
 from identification.engine import split_holdout
 from identification.engine_settings import DiscoverySettings, SelectionSettings
@@ -102,3 +102,18 @@ def test_the_tilted_hubs_restoring_moment_is_found_by_default_within_5_percent()
     old_error = height_law_error(old.expression, truth - far, Xv)
     assert old_error is None or old_error > 2 * error, (old.expression, old_error, error)
     assert sympy.Symbol("phi") not in best.expression.free_symbols
+
+
+def test_gravity_direction_primitives_compose_into_the_16_variables():
+    xi, u = random_states(200, 6)
+    xi[:, 2] = -_heights(200, 7, 0.2, 1.0)
+    X = np.hstack([xi, u])
+    g = primitive_matrix(X, ("gx", "gy", "gz"))
+    phi, theta = xi[:, 6], xi[:, 7]
+    np.testing.assert_allclose(g, np.column_stack([-np.sin(theta), np.sin(phi) * np.cos(theta),
+                                                   np.cos(phi) * np.cos(theta)]), atol=1e-15)
+    p = PRIMITIVE_SYMBOLS
+    law = p["gy"] * (p["u1"] ** 2 + p["u2"] ** 2) / p["h"] ** 3 - 2 * p["gx"] / p["h"] ** 2
+    in_variables = to_variables(law)
+    assert not {p["gx"], p["gy"], p["h"]} & in_variables.free_symbols
+    np.testing.assert_allclose(expression_columns([in_variables], X)[:, 0], body_values(law, X), rtol=1e-12)
