@@ -14,6 +14,11 @@ counting as dimensionless (PhySO-style unit vectors):
   h            height above the ground = -z (m; > 0 when flying; for ground effect)
   phi, theta   roll, pitch (rad; not in the default set: with gravity removed the body-frame physics does
                not depend on attitude, so they only let closed-loop correlations in)
+  gx, gy, gz   the gravity direction in the body frame, R^T e_z = (-sin(theta), sin(phi) cos(theta),
+               cos(phi) cos(theta)) (FRD, dimensionless), known from the attitude like gravity itself; it is
+               the ground plane's normal, so a body point r (FRD, m) is at height h - r . (gx, gy, gz): the
+               discovery engine uses gx, gy only there, in how a height law changes across the airframe
+               (identification.feature_space, "ground-plane gradient")
 """
 
 from __future__ import annotations
@@ -55,6 +60,8 @@ class Primitive:
     group: str  # primitives of one group with like units form a vector (for the norm operator)
     description: str
     angle: bool = False  # an angle in rad: sin/cos apply
+    ground_normal: bool = False  # a component of the ground plane's normal in the body frame: enters only as
+    # the gradient of a height law across the airframe (feature_space), not on its own
     positive: bool = False  # physically bounded away from zero: 1/x applies (height, not a velocity)
     summable: bool = False  # one scalar of a kind per member (rotor speeds): signed sums over the group;
     # not vector components (ub + vb mixes axes: no rotation-covariant law adds them)
@@ -76,6 +83,11 @@ PRIMITIVES: dict[str, Primitive] = {
         Primitive("h", (1, 0), "height", "height above ground = -z (m)", positive=True),
         Primitive("phi", (0, 0), "attitude", "roll (rad)", angle=True),
         Primitive("theta", (0, 0), "attitude", "pitch (rad)", angle=True),
+        Primitive("gx", (0, 0), "gravity", "gravity direction FRD x = -sin(theta) (1)", ground_normal=True),
+        Primitive("gy", (0, 0), "gravity", "gravity direction FRD y = sin(phi) cos(theta) (1)",
+                  ground_normal=True),
+        Primitive("gz", (0, 0), "gravity", "gravity direction FRD z = cos(phi) cos(theta) (1)",
+                  ground_normal=True),
     )
 }
 
@@ -90,7 +102,9 @@ def primitive_definitions() -> dict[str, sympy.Expr]:
     s = SYMBOLS
     rot = rotation_matrix_sym(s["phi"], s["theta"], s["psi"])
     vb = rot.T * sympy.Matrix([s["vx"], s["vy"], s["vz"]])
-    out: dict[str, sympy.Expr] = {"ub": vb[0], "vb": vb[1], "wb": vb[2], "h": -s["z"]}
+    down = rot.T * sympy.Matrix([0, 0, 1])  # R^T e_z
+    out: dict[str, sympy.Expr] = {"ub": vb[0], "vb": vb[1], "wb": vb[2], "h": -s["z"],
+                                  "gx": down[0], "gy": down[1], "gz": down[2]}
     for name in PRIMITIVES:
         if name not in out:
             out[name] = s[name]
@@ -103,11 +117,13 @@ def primitive_matrix(X: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     col = {n: i for i, n in enumerate(VARIABLE_NAMES)}
     rot = rotation_matrix(X[:, col["phi"]], X[:, col["theta"]], X[:, col["psi"]])
     vb = np.einsum("nji,nj->ni", rot, X[:, 3:6])  # R^T v
-    derived = {"ub": vb[:, 0], "vb": vb[:, 1], "wb": vb[:, 2], "h": -X[:, col["z"]]}
+    down = rot[:, 2, :]  # row 3 of R: R^T e_z (the gravity direction FRD)
+    derived = {"ub": vb[:, 0], "vb": vb[:, 1], "wb": vb[:, 2], "h": -X[:, col["z"]],
+               "gx": down[:, 0], "gy": down[:, 1], "gz": down[:, 2]}
     return np.column_stack([derived[n] if n in derived else X[:, col[n]] for n in names])
 
 
-_DERIVED = ("ub", "vb", "wb", "h")  # the primitives that are not among the 16 variables
+_DERIVED = ("ub", "vb", "wb", "h", "gx", "gy", "gz")  # the primitives that are not among the 16 variables
 
 
 @functools.lru_cache(maxsize=4096)
@@ -131,7 +147,7 @@ def to_variables(expr: sympy.Expr) -> sympy.Expr:
     """A body-frame expression in primitive names rewritten in the 16 variables."""
     defs = primitive_definitions()
     free = expr.free_symbols
-    subs = {PRIMITIVE_SYMBOLS[n]: defs[n] for n in ("ub", "vb", "wb", "h") if PRIMITIVE_SYMBOLS[n] in free}
+    subs = {PRIMITIVE_SYMBOLS[n]: defs[n] for n in _DERIVED if PRIMITIVE_SYMBOLS[n] in free}
     return expr.xreplace(subs) if subs else expr
 
 
@@ -177,8 +193,9 @@ def primitive_info(names: tuple[str, ...] | None = None) -> dict[str, dict[str, 
     out: dict[str, dict[str, str]] = {}
     for n in names:
         p = PRIMITIVES[n]
-        unit = {(1, -1): "m/s", (0, -1): "rad/s", (1, 0): "m", (0, 0): "rad"}[p.unit]
-        frame = {"v_b": "FRD", "w_b": "FRD", "height": "NED (-z)", "attitude": "ZYX Euler"}.get(p.group, "-")
+        unit = {(1, -1): "m/s", (0, -1): "rad/s", (1, 0): "m", (0, 0): "rad" if p.angle else "1"}[p.unit]
+        frame = {"v_b": "FRD", "w_b": "FRD", "height": "NED (-z)", "attitude": "ZYX Euler",
+                 "gravity": "FRD"}.get(p.group, "-")
         out[n] = {"expression": expression_to_string(defs[n]), "unit": unit, "frame": frame,
                   "description": p.description}
     return out

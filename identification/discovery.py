@@ -125,7 +125,8 @@ class DiscoveryEngine:
         s = self.settings
         P = primitive_matrix(X, s.primitives)
         space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers,
-                           s.abs_sign_share)
+                           near_inverse_powers=s.near_inverse_powers, near_spread=s.near_spread,
+                           abs_sign_share=s.abs_sign_share)
         unary = list(range(len(space)))
         if s.rungs >= 2 and "mul" in s.operators:
             grow_products(space, unary, unary, 2)
@@ -327,13 +328,15 @@ class DiscoveryEngine:
                             hint="pip install pyoperon") from None
         s = self.settings
         prims = list(columns.space.primitives)
+        # the ground plane's normal (gx, gy) only inside the features that hold it (a height law's gradient)
+        own = [k for k, n in enumerate(prims) if not PRIMITIVES[n].ground_normal]
         seeds = _product_factors(best.expression)
-        names = prims + [f"s{k}" for k in range(len(seeds))]
-        mapping: dict[str, sympy.Expr] = {n: PRIMITIVE_SYMBOLS[n] for n in prims}
+        names = [prims[k] for k in own] + [f"s{k}" for k in range(len(seeds))]
+        mapping: dict[str, sympy.Expr] = {prims[k]: PRIMITIVE_SYMBOLS[prims[k]] for k in own}
         mapping.update({f"s{k}": e for k, e in enumerate(seeds)})
         seed_fn = _lambdify(prims, seeds)
         P = columns.primitives(X)
-        inputs = np.hstack([P, seed_fn(P)]) if seeds else P
+        inputs = np.hstack([P[:, own], seed_fn(P)]) if seeds else P[:, own]
         residual = y - best.evaluate(X)
         reg = SymbolicRegressor(
             allowed_symbols="add,sub,mul,div,constant,variable",

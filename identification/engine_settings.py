@@ -67,15 +67,22 @@ class DiscoverySettings:
     seconds.
     """
 
-    primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
-    operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
+    # gx, gy: the gravity direction FRD (the ground plane's normal), used only in the ground-plane gradients
+    # of a height law (identification.feature_space "tilt"), for a flight near the ground
+    primitives: tuple[str, ...] = (
+        "ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h", "gx", "gy",
+    )
+    operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "tilt", "norm", "sincos", "add")
     # 1/x of a positive primitive (the height) only where its smallest value on the fit rows is at least its
     # median / inverse_span (identification.feature_space): a lift-off's rows at h -> 0 would own 1/h^2
     inverse_span: float = 10.0
-    # 1/x .. 1/x^inverse_powers of such a primitive; 4 resolves a ground-effect law near the ground better
-    # (--settings), but on the README's paper-train flight (h 70-200 m) the larger pool crowded the screening
-    # and the pick took u4^2/h for the thrust (with 2: the true -ct sum(u_i^2))
+    # 1/x .. 1/x^inverse_powers of such a primitive for a flight far from the ground: on the README's
+    # paper-train flight (h 70-200 m) 4 crowded the screening and the pick took u4^2/h for the thrust
     inverse_powers: int = 2
+    # .. 1/x^near_inverse_powers, and the ground-plane gradients, for a flight that reaches near the ground on
+    # its own scale: lowest height <= near_spread standard deviations of its heights (feature_space)
+    near_inverse_powers: int = 3
+    near_spread: float = 1.0
     # |x| only where x takes both signs: the smaller side's extent at least this share of the larger
     # (identification.feature_space); otherwise |x| = +-x on nearly every row and x stands for it
     abs_sign_share: float = 0.05

@@ -5,10 +5,18 @@ Each primitive carries a unit as exponents of (m, s) (identification.body_frame)
   data: the smaller side reaches at least `abs_sign_share` of the larger; a yaw rate that keeps its sign
   but for a few near-zero samples makes |x| equal to +-x on all but those rows, so no flight of that kind
   tells a law in |x| from one in x, and the simpler x stands),
-  1/x, 1/x^2, ... 1/x^inverse_powers ("inv", for a quantity physically bounded away from zero, the height,
+  1/x, 1/x^2, ... 1/x^K ("inv", for a quantity physically bounded away from zero, the height,
   and bounded away from zero in the data too: its smallest value at least 1/inverse_span of its median, so
   that no handful of rows (a lift-off at h -> 0) makes 1/x^k many orders of magnitude above its typical
-  value and owns the least squares; a series in 1/h times the thrust approximates a ground-effect law),
+  value and owns the least squares; a series in 1/h times the thrust approximates a ground-effect law);
+  K = inverse_powers, or near_inverse_powers for a flight that reaches near the ground on its own scale
+  (`reaches_near`: its lowest height at most near_spread standard deviations of its heights), where a
+  height law changes most; a flight far from the ground gets no higher powers to crowd its screening,
+  the ground-plane gradient g_j/x^(k+1), k = 1..K ("tilt", near the ground only, for each primitive marked
+  ground_normal, gx and gy: the gravity direction in the body frame, i.e. the ground plane's normal): a body
+  point r (a rotor hub) is at height h - r.g, so a law 1/h^k at the hubs is, to first order,
+  1/h^k + k (r.g)/h^(k+1); the unknown offsets r are the coefficients (a tilted vehicle's lower rotors
+  nearer the ground: the restoring moment of ground effect),
   sin x and cos x ("sincos", only for a dimensionless x),
   the norm sqrt(sum x_i^2) of a vector group ("norm", only when every member has the same unit: adding unlike
   units is invalid); the signed sums sum_i s_i x_i and sum_i s_i x_i^2 (s_i = +-1) over a group of like
@@ -33,7 +41,7 @@ import sympy
 
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, Unit
 
-OPERATORS: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
+OPERATORS: tuple[str, ...] = ("mul", "pow", "abs", "inv", "tilt", "norm", "sincos", "add")
 
 
 def combine_units(op: str, *units: Unit) -> Unit | None:
@@ -58,9 +66,9 @@ def power_unit(unit: Unit, p: int) -> Unit:
 class Recipe:
     """How a feature's column is computed: op over primitive columns (unary) or parent features (mul)."""
 
-    op: str  # id, pow2, abs, inv, sin, cos, norm, sum1, sum2, mul
-    args: tuple[int, ...]  # primitive indices (unary, norm, sums) or feature indices (mul)
-    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument; inv: (the power,)
+    op: str  # id, pow2, abs, inv, tilt, sin, cos, norm, sum1, sum2, mul
+    args: tuple[int, ...]  # primitive indices (unary, norm, sums; tilt: (normal, height)) or feature indices
+    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument; inv, tilt: (the power of 1/x,)
 
 
 @dataclass
@@ -115,6 +123,8 @@ class FeatureSpace:
                         v = np.abs(x)
                     elif r.op == "inv":
                         v = x ** -float(r.signs[0])
+                    elif r.op == "tilt":
+                        v = x * P[:, r.args[1]] ** -float(r.signs[0])
                     elif r.op == "sin":
                         v = np.sin(x)
                     elif r.op == "cos":
@@ -135,17 +145,27 @@ class FeatureSpace:
         return out
 
 
+def reaches_near(x: np.ndarray, near_spread: float) -> bool:
+    """True when a positive quantity's data come near zero on their own scale (scale-free): its smallest value
+    is at most near_spread standard deviations of its values (a flight whose lowest height, m, is within
+    its own vertical extent of the ground)."""
+    return bool(x.min() <= near_spread * x.std())
+
+
 def grow_unary(
     primitives: Sequence[str],
     operators: Sequence[str],
     P: np.ndarray,
     inverse_span: float = 10.0,
     inverse_powers: int = 2,
+    near_inverse_powers: int | None = None,
+    near_spread: float = 1.0,
     abs_sign_share: float = 0.05,
 ) -> FeatureSpace:
     """Rung 1: each primitive and the unary operators that are valid for its unit and its range in P
-    (inverse_span: 1/x only where min(x) >= median(x) / inverse_span; abs_sign_share: |x| only where
-    min(-min(x), max(x)) >= abs_sign_share * max|x|; module docstring)."""
+    (inverse_span: 1/x only where min(x) >= median(x) / inverse_span; near_inverse_powers (None: as
+    inverse_powers) and the ground-plane gradients where the data reach near zero; abs_sign_share: |x| only
+    where min(-min(x), max(x)) >= abs_sign_share * max|x|; module docstring)."""
     unknown = [o for o in operators if o not in OPERATORS]
     if unknown:
         raise ValueError(f"unknown operators {unknown} (known: {', '.join(OPERATORS)})")
@@ -168,8 +188,11 @@ def grow_unary(
                 for signs in patterns:
                     expr = sympy.Add(*[s_ * sym[k] ** power for s_, k in zip(signs, members, strict=True)])
                     space._add(expr, power_unit(u, power), 1, Recipe(op, tuple(members), signs))
+    normals = [k for k, name in enumerate(primitives) if PRIMITIVES[name].ground_normal]
     for k, name in enumerate(primitives):
         x, unit, s = P[:, k], PRIMITIVES[name].unit, sym[k]
+        if PRIMITIVES[name].ground_normal:
+            continue  # only in the ground-plane gradients, below
         space._add(s, unit, 1, Recipe("id", (k,)))
         if "pow" in operators:
             space._add(s**2, power_unit(unit, 2), 1, Recipe("pow2", (k,)))
@@ -181,8 +204,15 @@ def grow_unary(
                 space._prune("abs of a quantity that keeps its sign in the data")
         if "inv" in operators and PRIMITIVES[name].positive and np.all(x > 0):
             if x.min() * inverse_span >= np.median(x):
-                for p in range(1, inverse_powers + 1):
+                near = reaches_near(x, near_spread)
+                powers = max(inverse_powers, near_inverse_powers or 0) if near else inverse_powers
+                for p in range(1, powers + 1):
                     space._add(1 / s**p, power_unit(unit, -p), 1, Recipe("inv", (k,), (p,)))
+                for j in normals if near and "tilt" in operators else ():
+                    for p in range(2, powers + 2):  # the gradient of 1/x^(p-1)
+                        space._add(sym[j] / s**p, power_unit(unit, -p), 1, Recipe("tilt", (j, k), (p,)))
+                if normals and not near:
+                    space._prune("ground-plane gradient of a flight far from the ground")
             else:
                 space._prune("inverse of a quantity that comes near zero in the data")
         if "sincos" in operators:
@@ -193,7 +223,7 @@ def grow_unary(
                     continue
                 space._add(fn(s), u, 1, Recipe(op, (k,)))
     for members in groups.values():
-        if len(members) < 2 or "norm" not in operators:
+        if len(members) < 2 or "norm" not in operators or set(members) & set(normals):
             continue
         u = combine_units("norm", *[PRIMITIVES[primitives[k]].unit for k in members])
         if u is None:
