@@ -125,9 +125,10 @@ def _symbols_in(text: str) -> set[str]:
 
 
 def column_collinearity(
-    columns: np.ndarray, names: Sequence[str], vif_limit: float = VIF_LIMIT
+    columns: np.ndarray, names: Sequence[str], vif_limit: float = VIF_LIMIT, condition: bool = True
 ) -> Collinearity:
-    """Condition number and VIFs of the columns (N,k) named `names` (module docstring)."""
+    """Condition number and VIFs of the columns (N,k) named `names` (module docstring); condition=False
+    skips the condition number (an SVD of the columns; NaN then) where only the VIFs are wanted."""
     a = np.asarray(columns, dtype=float)
     a = a[np.all(np.isfinite(a), axis=1)]
     if len(a) < 2:
@@ -137,8 +138,10 @@ def column_collinearity(
     if len(idx) == 0:
         return Collinearity(1.0, (), vif_limit)
     z = z[:, idx]
-    sv = np.linalg.svd(z, compute_uv=False)
-    cond = float(sv[0] / sv[-1]) if sv[-1] > sv[0] * 1e-15 else float("inf")
+    cond = float("nan")
+    if condition:
+        sv = np.linalg.svd(z, compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > sv[0] * 1e-15 else float("inf")
     corr = (z.T @ z) / len(z)
     terms = []
     for k, j in enumerate(idx):
@@ -274,7 +277,8 @@ def term_t_ratios(columns: np.ndarray, y: np.ndarray) -> tuple[np.ndarray | None
     c = np.linalg.lstsq(z, y, rcond=None)[0]
     resid = y - z @ c
     s = float(np.sqrt(np.mean(resid * resid)))
-    vif = np.array([t.vif for t in column_collinearity(a, [str(j) for j in range(a.shape[1])]).terms])
+    names = [str(j) for j in range(a.shape[1])]
+    vif = np.array([t.vif for t in column_collinearity(a, names, condition=False).terms])
     c = np.abs(c[measured])
     full_vif[measured] = vif
     if s == 0.0:

@@ -24,7 +24,7 @@ import dataclasses
 import hashlib
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -200,7 +200,7 @@ class DiscoveryEngine:
         basis = _Basis(len(y))
         # rung 1 always in (combinations first: where a combination and its members are dependent, the
         # combination stands for them); later features only where independent of the pool
-        pool: list[int] = [i for i in range(len(space)) if space.rungs[i] == 1 and basis.add(F[:, i])]
+        pool: list[int] = basis.add_first(F, [i for i in range(len(space)) if space.rungs[i] == 1])
         candidates: list[Candidate] = []
         seen: set[frozenset[int]] = set()
         residual = y.copy()
@@ -209,12 +209,8 @@ class DiscoveryEngine:
         for rnd in range(max(s.rounds, 1)):
             scores = _screen_scores(Z, residual)
             scores[pool] = -np.inf
-            new: list[int] = []
-            for i in np.argsort(-scores, kind="stable"):
-                if len(new) >= s.screen or not np.isfinite(scores[i]):
-                    break
-                if basis.add(F[:, i]):
-                    new.append(int(i))
+            order = np.argsort(-scores, kind="stable")
+            new = basis.add_first(F, order[np.isfinite(scores[order])], limit=s.screen)
             if not new:
                 break
             pool += new
@@ -394,25 +390,66 @@ _KEEP = 3  # candidates kept per model size (number of terms): the best by train
 
 
 class _Basis:
-    """An orthonormal basis of the pool's columns (and the constant), to keep only independent features."""
+    """An orthonormal basis of the pool's columns (and the constant), to keep only independent features.
+
+    Candidates are tested in order, in blocks: a block is projected out of the basis as it stood with one
+    matrix product (twice: classical Gram-Schmidt loses orthogonality once), then each of its columns out of
+    the block's columns accepted before it; mathematically the column-by-column test, at BLAS-3 speed. The
+    basis lives in a preallocated buffer (grown by doubling) rather than being copied on every addition."""
+
+    _BLOCK = 32  # candidates projected together
 
     def __init__(self, n: int, tol: float = 1e-8):
-        self.q = np.full((n, 1), 1.0 / np.sqrt(n))
+        self._q = np.empty((n, 64))
+        self._q[:, 0] = 1.0 / np.sqrt(n)
+        self.k = 1  # columns in use
         self.tol = tol
 
-    def add(self, col: np.ndarray) -> bool:
-        """Add col if it is not (numerically) a combination of the basis; True when added."""
-        norm = float(np.linalg.norm(col))
-        if not np.isfinite(norm) or norm == 0.0:
-            return False
-        v = col / norm
-        for _ in range(2):  # twice: classical Gram-Schmidt loses orthogonality once
-            v = v - self.q @ (self.q.T @ v)
-        rest = float(np.linalg.norm(v))
-        if rest <= self.tol:
-            return False
-        self.q = np.hstack([self.q, (v / rest)[:, None]])
-        return True
+    @property
+    def q(self) -> np.ndarray:
+        """The basis (N, k), orthonormal columns."""
+        return self._q[:, : self.k]
+
+    def add_first(self, F: np.ndarray, indices: Sequence[int], limit: int | None = None) -> list[int]:
+        """Add, in order, each column F[:, i] (i in indices) that is not (numerically) a combination of the
+        basis and the columns added before it, until `limit` are added; the indices added."""
+        added: list[int] = []
+        indices = np.asarray(indices, dtype=int)
+        for start in range(0, len(indices), self._BLOCK):
+            if limit is not None and len(added) >= limit:
+                break
+            idx = indices[start : start + self._BLOCK]
+            block = F[:, idx]
+            with np.errstate(all="ignore"):
+                norms = np.sqrt(np.sum(block * block, axis=0))
+            usable = np.isfinite(norms) & (norms > 0.0)
+            idx, v = idx[usable], block[:, usable] / norms[usable]
+            old = self.q
+            for _ in range(2):
+                v = v - old @ (old.T @ v)
+            k0 = self.k
+            for j in range(len(idx)):
+                if limit is not None and len(added) >= limit:
+                    break
+                col = v[:, j]
+                if self.k > k0:  # out of this block's columns accepted before it
+                    mine = self._q[:, k0 : self.k]
+                    for _ in range(2):
+                        col = col - mine @ (mine.T @ col)
+                rest = float(np.linalg.norm(col))
+                if rest <= self.tol:
+                    continue
+                self._append(col / rest)
+                added.append(int(idx[j]))
+        return added
+
+    def _append(self, col: np.ndarray) -> None:
+        if self.k == self._q.shape[1]:
+            grown = np.empty((self._q.shape[0], 2 * self.k))
+            grown[:, : self.k] = self._q
+            self._q = grown
+        self._q[:, self.k] = col
+        self.k += 1
 
 
 def _better(new: Candidate, old: Candidate, scale: float, margin: float = 1e-3) -> bool:

@@ -109,17 +109,27 @@ class LeastSquaresProblem:
         resid = z - q @ (q.T @ z)
         return float(resid @ resid) + self._y2 - float(z @ z)
 
-    def removal_costs(self, idx: np.ndarray) -> np.ndarray:
-        """For each column of idx, how much the RSS rises without it: x_j^2 / [(M^T M)^-1]_jj, vectorised."""
-        m = self._r_u[:, idx]
-        q, r = np.linalg.qr(m, mode="reduced")
+    def removal_costs(self, idx: np.ndarray, factor: np.ndarray | None = None) -> np.ndarray:
+        """For each column of idx, how much the RSS rises without it: x_j^2 / [(M^T M)^-1]_jj, vectorised.
+
+        factor: the triangular factor of [M | Q^T y] for M = the reduced columns idx (subset_factor), when
+        the caller keeps it up to date (backward_path); computed here otherwise."""
+        k = idx.size
+        t = self.subset_factor(idx) if factor is None else factor
+        r = t[:k, :k]
         diag = np.abs(np.diag(r))
         if diag.size == 0 or diag.min() <= 1e-10 * diag.max():  # dependent columns: the slow, exact way
             base = self.rss(idx)
-            return np.array([self.rss(np.delete(idx, k)) - base for k in range(idx.size)])
-        x = scipy.linalg.solve_triangular(r, q.T @ self._z_u)
-        rinv = scipy.linalg.solve_triangular(r, np.eye(idx.size))
+            return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
+        x = scipy.linalg.solve_triangular(r, t[:k, k])
+        rinv = scipy.linalg.solve_triangular(r, np.eye(k))
         return x * x / np.sum(rinv * rinv, axis=1)
+
+    def subset_factor(self, idx: np.ndarray) -> np.ndarray:
+        """The triangular factor (at most k+1 rows) of [M | z] for M the reduced columns idx (k of them) and
+        z = Q^T y: its first k columns are M's R, its last column's first k entries R's Q^T z."""
+        t = np.linalg.qr(np.asfortranarray(np.column_stack([self._r_u[:, idx], self._z_u])), mode="r")
+        return t[: idx.size + 1]
 
     def addition_gains(self, idx: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """For each candidate column, how much the RSS falls when it joins idx, vectorised."""
@@ -199,13 +209,19 @@ def backward_path(problem: LeastSquaresProblem, active: np.ndarray) -> list[np.n
     residual sum of squares least (of two near-collinear terms one goes early, not both kept large)."""
     out = []
     idx = np.flatnonzero(active)
+    factor = problem.subset_factor(idx) if idx.size else None
     while idx.size:
         current = np.zeros_like(active)
         current[idx] = True
         out.append(current)
         if idx.size == 1:
             break
-        idx = np.delete(idx, int(np.argmin(problem.removal_costs(idx))))
+        j = int(np.argmin(problem.removal_costs(idx, factor)))
+        idx = np.delete(idx, j)
+        # the factor without column j, by Givens rotations (O(k^2)) rather than a new QR (O(p k^2))
+        rows = factor.shape[0]
+        factor = scipy.linalg.qr_delete(np.eye(rows), factor, j, which="col", check_finite=False)[1]
+        factor = factor[: idx.size + 1]
     return out
 
 
