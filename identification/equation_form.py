@@ -204,6 +204,14 @@ _RATES = [_S["wx"], _S["wy"], _S["wz"]]
 _VELOCITIES = [_S["vx"], _S["vy"], _S["vz"], *_V, *_A]
 
 
+def _degree(f: sympy.Expr, x: sympy.Symbol) -> int:
+    """The degree of f in x; 1 where f is no polynomial in x (|x|, 1/x, sin x: x appears once)."""
+    try:
+        return int(sympy.degree(f, x))
+    except sympy.PolynomialError:
+        return 1
+
+
 def term_group(target: str, factor: sympy.Expr) -> str:
     """The physical meaning of one display term of a target: thrust, control, coupling, drag, gravity/bias
     or other (f1 and lone u_i on x'', y'', z'' are thrust; f2..f4 and u_i on wx', wy', wz' control;
@@ -218,7 +226,7 @@ def term_group(target: str, factor: sympy.Expr) -> str:
         if target in _LINEAR:
             return "thrust"
         return "thrust" if f.has(_F["f1"]) and not f.has(_F["f2"], _F["f3"], _F["f4"]) else "control"
-    rate_power = sum(sympy.degree(f, r) for r in _RATES if f.has(r))
+    rate_power = sum(_degree(f, r) for r in _RATES if f.has(r))
     if rate_power >= 2 and sum(1 for r in _RATES if f.has(r)) >= 2:
         return "coupling"
     if f.has(*_VELOCITIES) or rate_power == 1:

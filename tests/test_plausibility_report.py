@@ -121,3 +121,11 @@ def test_identify_a_real_log_end_to_end(tmp_path):
         timeout=300,
     )
     assert bad.returncode == 2 and "never armed" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_an_equation_with_abs_of_a_rate_is_displayed_not_raised():
+    """A learned |wz| beside wx (dwy's wx*|wz| on a flight whose yaw rate keeps its sign) is a coupling line;
+    sympy.degree raised PolynomialError on it and `quadsr identify` ended in a traceback."""
+    lines = equation_text("dwy", 0.7 * S["wx"] * sympy.Abs(S["wz"]) - 0.0046 * S["wy"])
+    groups = {group for group, _ in lines}
+    assert "coupling" in groups and "drag" in groups
