@@ -14,6 +14,12 @@ counting as dimensionless (PhySO-style unit vectors):
   h            height above the ground = -z (m; > 0 when flying; for ground effect)
   phi, theta   roll, pitch (rad; not in the default set: with gravity removed the body-frame physics does
                not depend on attitude, so they only let closed-loop correlations in)
+  gbx gby gbz  the gravity's direction in the body, R^T e_z (FRD, dimensionless): each a lone term of its
+               own force target only (fx, fy, fz; no operator, no product): the gravity removed (the
+               vehicle's, else 9.80665 m/s^2) is rarely the data's to 1e-4 (RotorPy and jMAVSim fly with
+               9.81; the local g varies by 0.5 % over the Earth), and what it leaves, dg R^T e_z, is no
+               function of the other primitives; learned as dg gbz in fz, it cancels exactly in the
+               composed x'' y'' z''
 """
 
 from __future__ import annotations
@@ -58,6 +64,9 @@ class Primitive:
     positive: bool = False  # physically bounded away from zero: 1/x applies (height, not a velocity)
     summable: bool = False  # one scalar of a kind per member (rotor speeds): signed sums over the group;
     # not vector components (ub + vb mixes axes: no rotation-covariant law adds them)
+    # a lone term of this target only (no operator, no product, none in the other targets): the gravity
+    # direction's component along the target's axis
+    only_target: str | None = None
 
 
 PRIMITIVES: dict[str, Primitive] = {
@@ -76,6 +85,12 @@ PRIMITIVES: dict[str, Primitive] = {
         Primitive("h", (1, 0), "height", "height above ground = -z (m)", positive=True),
         Primitive("phi", (0, 0), "attitude", "roll (rad)", angle=True),
         Primitive("theta", (0, 0), "attitude", "pitch (rad)", angle=True),
+        Primitive("gbx", (0, 0), "gravity", "gravity direction in the body (R^T e_z)_x = -sin(theta) "
+                  "(FRD, 1)", only_target="fx"),
+        Primitive("gby", (0, 0), "gravity", "gravity direction in the body (R^T e_z)_y = sin(phi) cos(theta) "
+                  "(FRD, 1)", only_target="fy"),
+        Primitive("gbz", (0, 0), "gravity", "gravity direction in the body (R^T e_z)_z = cos(phi) cos(theta) "
+                  "(FRD, 1)", only_target="fz"),
     )
 }
 
@@ -91,6 +106,7 @@ def primitive_definitions() -> dict[str, sympy.Expr]:
     rot = rotation_matrix_sym(s["phi"], s["theta"], s["psi"])
     vb = rot.T * sympy.Matrix([s["vx"], s["vy"], s["vz"]])
     out: dict[str, sympy.Expr] = {"ub": vb[0], "vb": vb[1], "wb": vb[2], "h": -s["z"]}
+    out |= {"gbx": rot[2, 0], "gby": rot[2, 1], "gbz": rot[2, 2]}  # R^T e_z: the third row of R
     for name in PRIMITIVES:
         if name not in out:
             out[name] = s[name]
@@ -103,11 +119,12 @@ def primitive_matrix(X: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     col = {n: i for i, n in enumerate(VARIABLE_NAMES)}
     rot = rotation_matrix(X[:, col["phi"]], X[:, col["theta"]], X[:, col["psi"]])
     vb = np.einsum("nji,nj->ni", rot, X[:, 3:6])  # R^T v
-    derived = {"ub": vb[:, 0], "vb": vb[:, 1], "wb": vb[:, 2], "h": -X[:, col["z"]]}
+    derived = {"ub": vb[:, 0], "vb": vb[:, 1], "wb": vb[:, 2], "h": -X[:, col["z"]],
+               "gbx": rot[:, 2, 0], "gby": rot[:, 2, 1], "gbz": rot[:, 2, 2]}
     return np.column_stack([derived[n] if n in derived else X[:, col[n]] for n in names])
 
 
-_DERIVED = ("ub", "vb", "wb", "h")  # the primitives that are not among the 16 variables
+_DERIVED = ("ub", "vb", "wb", "h", "gbx", "gby", "gbz")  # the primitives that are not among the 16 variables
 
 
 @functools.lru_cache(maxsize=4096)
@@ -131,7 +148,7 @@ def to_variables(expr: sympy.Expr) -> sympy.Expr:
     """A body-frame expression in primitive names rewritten in the 16 variables."""
     defs = primitive_definitions()
     free = expr.free_symbols
-    subs = {PRIMITIVE_SYMBOLS[n]: defs[n] for n in ("ub", "vb", "wb", "h") if PRIMITIVE_SYMBOLS[n] in free}
+    subs = {PRIMITIVE_SYMBOLS[n]: defs[n] for n in _DERIVED if PRIMITIVE_SYMBOLS[n] in free}
     return expr.xreplace(subs) if subs else expr
 
 
@@ -178,7 +195,9 @@ def primitive_info(names: tuple[str, ...] | None = None) -> dict[str, dict[str, 
     for n in names:
         p = PRIMITIVES[n]
         unit = {(1, -1): "m/s", (0, -1): "rad/s", (1, 0): "m", (0, 0): "rad"}[p.unit]
-        frame = {"v_b": "FRD", "w_b": "FRD", "height": "NED (-z)", "attitude": "ZYX Euler"}.get(p.group, "-")
+        unit = "1" if p.group == "gravity" else unit
+        frame = {"v_b": "FRD", "w_b": "FRD", "height": "NED (-z)", "attitude": "ZYX Euler",
+                 "gravity": "FRD"}.get(p.group, "-")
         out[n] = {"expression": expression_to_string(defs[n]), "unit": unit, "frame": frame,
                   "description": p.description}
     return out

@@ -35,7 +35,13 @@ from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_m
 from identification.candidate import Candidate, Progress
 from identification.collinearity import term_identification, term_shapes
 from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
-from identification.feature_space import OPERATORS, FeatureSpace, grow_products, grow_unary
+from identification.feature_space import (
+    OPERATORS,
+    FeatureSpace,
+    grow_products,
+    grow_unary,
+    lone_features,
+)
 from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
@@ -116,13 +122,15 @@ class DiscoveryEngine:
         self.weak: tuple[Any, Any] | None = None
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
+        self._features: dict[int, np.ndarray] = {}  # id(candidate) -> its feature indices in the space
 
     def build_space(self, X: np.ndarray) -> FeatureSpace:
         """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
         s = self.settings
         P = primitive_matrix(X, s.primitives)
-        space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers)
-        unary = list(range(len(space)))
+        space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers, s.min_spread)
+        lone = lone_features(space)
+        unary = [i for i in range(len(space)) if i not in lone]
         if s.rungs >= 2 and "mul" in s.operators:
             grow_products(space, unary, unary, 2)
         return space
@@ -149,7 +157,7 @@ class DiscoveryEngine:
         else:
             Xh, yh = np.asarray(holdout[0], float), np.asarray(holdout[1], float)
         with single_threaded_blas():
-            return self._fit(X, y, Xh, yh, seed, loss, progress, int(budget))
+            return self._fit(X, y, Xh, yh, seed, loss, progress, int(budget), target)
 
     def _fit(
         self,
@@ -161,6 +169,7 @@ class DiscoveryEngine:
         loss: str,
         progress: Progress | None,
         budget: int,
+        target: str = "",
     ) -> list[Candidate]:
         s = self.settings
         start = time.perf_counter()
@@ -178,7 +187,8 @@ class DiscoveryEngine:
         if s.rungs >= 3 and "mul" in s.operators:
             scores = _screen_scores(Z, y)
             rung2 = [i for i in np.argsort(-scores, kind="stable") if space.rungs[i] == 2][: s.beam]
-            unary = [i for i in range(len(space)) if space.rungs[i] == 1]
+            lone = lone_features(space)
+            unary = [i for i in range(len(space)) if space.rungs[i] == 1 and i not in lone]
             added = grow_products(space, rung2, unary, 3)
             if added:
                 F = np.hstack([F, columns(X, np.asarray(added, int))])
@@ -193,16 +203,22 @@ class DiscoveryEngine:
             y = weak @ y
         scale = float(np.std(yh if weak_h is None else weak_h @ yh)) if len(yh) else 1.0
         basis = _Basis(len(y))
+        foreign = [i for i, t in lone_features(space).items() if t != target]  # another target's lone term
+        if foreign:
+            Z = Z.copy()
+            Z[:, foreign] = np.nan  # never screened
         # rung 1 always in (combinations first: where a combination and its members are dependent, the
         # combination stands for them); later features only where independent of the pool
-        pool: list[int] = [i for i in range(len(space)) if space.rungs[i] == 1 and basis.add(F[:, i])]
+        pool: list[int] = [i for i in range(len(space))
+                           if space.rungs[i] == 1 and i not in foreign and basis.add(F[:, i])]
         candidates: list[Candidate] = []
         seen: set[frozenset[int]] = set()
         residual = y.copy()
         best: Candidate | None = None
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
         for rnd in range(max(s.rounds, 1)):
-            scores = _screen_scores(Z, residual)
+            model_cols = F[:, self._features.get(id(best), np.zeros(0, int))]
+            scores = _projected_scores(Z, residual, model_cols)
             scores[pool] = -np.inf
             new: list[int] = []
             for i in np.argsort(-scores, kind="stable"):
@@ -219,9 +235,10 @@ class DiscoveryEngine:
             previous, best = best, select(candidates, _SELECTION, scale=scale)
             residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
             if progress:
-                progress(0.7 * (rnd + 1) / max(s.rounds, 1), f"round {rnd + 1}: pool {len(pool)}")
+                progress(0.7 * (rnd + 1) / max(s.rounds, 1),
+                         f"round {rnd + 1}: pool {len(pool)}, pick loss {best.holdout_loss:.3g}")
             stale = stale + 1 if previous is not None and not _better(best, previous, scale) else 0
-            if stale >= max(s.patience, 1):
+            if stale >= max(s.patience, 1) or _exact(best, scale):
                 break
         self.stats["rounds"] = rnd + 1
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
@@ -298,6 +315,7 @@ class DiscoveryEngine:
                 )
             )
             out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
+            self._features[id(out[-1])] = fidx
         return out
 
     def _operon(
@@ -322,13 +340,16 @@ class DiscoveryEngine:
             raise UserError(f"the discovery engine needs pyoperon ({exc})",
                             hint="pip install pyoperon") from None
         s = self.settings
-        prims = list(columns.space.primitives)
-        seeds = _product_factors(best.expression)
+        every = list(columns.space.primitives)
+        keep = [k for k, n in enumerate(every) if not PRIMITIVES[n].only_target]  # lone terms: in the pool
+        prims = [every[k] for k in keep]
+        inside = {PRIMITIVE_SYMBOLS[n] for n in prims}
+        seeds = [f for f in _product_factors(best.expression) if f.free_symbols <= inside]
         names = prims + [f"s{k}" for k in range(len(seeds))]
         mapping: dict[str, sympy.Expr] = {n: PRIMITIVE_SYMBOLS[n] for n in prims}
         mapping.update({f"s{k}": e for k, e in enumerate(seeds)})
         seed_fn = _lambdify(prims, seeds)
-        P = columns.primitives(X)
+        P = columns.primitives(X)[:, keep]
         inputs = np.hstack([P, seed_fn(P)]) if seeds else P
         residual = y - best.evaluate(X)
         reg = SymbolicRegressor(
@@ -364,7 +385,7 @@ class DiscoveryEngine:
             expr = sympy.Add(best.expression, extra, evaluate=False)
 
             def predict(X_: np.ndarray, fn: Callable[[np.ndarray], np.ndarray] = fn) -> np.ndarray:
-                return best.evaluate(X_) + fn(columns.primitives(X_))[:, 0]
+                return best.evaluate(X_) + fn(columns.primitives(X_)[:, keep])[:, 0]
 
             out.append(
                 Candidate(
@@ -417,6 +438,12 @@ def _better(new: Candidate, old: Candidate, scale: float, margin: float = 1e-3) 
     return not np.isfinite(b) or a < b * (1.0 - margin) - 1e-9 * scale
 
 
+def _exact(c: Candidate, scale: float) -> bool:
+    """True when c's held-out loss is at rounding level (1e-9 of the held-out target's spread, as in
+    _better): no later round can be better, so none is run."""
+    return c.holdout_loss is not None and bool(c.holdout_loss <= 1e-9 * scale)
+
+
 def _standardized(F: np.ndarray) -> np.ndarray:
     """Columns centred and scaled to unit RMS; unusable columns (constant, not finite) all NaN."""
     with np.errstate(all="ignore"):
@@ -434,6 +461,30 @@ def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:
     with np.errstate(all="ignore"):
         scores = np.abs(np.nan_to_num(Z.T @ rc, nan=np.nan)) / (len(r) * (rs if rs > 0 else 1.0))
     return np.where(np.isfinite(scores), scores, -np.inf)
+
+
+def _projected_scores(Z: np.ndarray, r: np.ndarray, model: np.ndarray, floor: float = 1e-5) -> np.ndarray:
+    """|correlation| of each standardized column of Z (N,M) with the residual r (N,), both taken orthogonal
+    to the current model's columns `model` (N,k) and the constant: what each feature adds to the model
+    against what the model leaves unexplained (orthogonal matching pursuit's criterion). Plain screening
+    ranks a feature nearly collinear with a model term (wz*(u1+..+u4) beside wz when the rotor sum varies
+    by 5 %) by the part the model already explains, so the residual it would remove never brings it in.
+    -inf where a column is unusable or adds less than `floor` of its own spread (numerically in the span)."""
+    if model.shape[1] == 0:
+        return _screen_scores(Z, r)
+    basis = np.hstack([np.ones((len(r), 1)), model])
+    basis = basis[:, np.all(np.isfinite(basis), axis=0)]
+    q, rr = np.linalg.qr(basis)
+    q = q[:, np.abs(np.diag(rr)) > 1e-10 * max(float(np.abs(np.diag(rr)).max()), 1e-300)]
+    r_perp = r - q @ (q.T @ r)
+    rs = float(np.linalg.norm(r_perp))
+    with np.errstate(all="ignore"):
+        Zf = np.nan_to_num(Z, nan=0.0)
+        along = q.T @ Zf
+        perp2 = np.sum(Zf * Zf, axis=0) - np.sum(along * along, axis=0)
+        usable = np.all(np.isfinite(Z[:1]), axis=0) & (perp2 > (floor**2) * len(r))
+        scores = np.abs(r_perp @ Zf) / ((rs if rs > 0 else 1.0) * np.sqrt(np.where(usable, perp2, 1.0)))
+    return np.where(usable & np.isfinite(scores), scores, -np.inf)
 
 
 def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:

@@ -67,7 +67,9 @@ class DiscoverySettings:
     seconds.
     """
 
-    primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
+    # gbx gby gbz: the gravity direction, a lone term of fx, fy, fz each (identification.body_frame)
+    primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h",
+                                   "gbx", "gby", "gbz")
     operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
     # 1/x of a positive primitive (the height) only where its smallest value on the fit rows is at least its
     # median / inverse_span (identification.feature_space): a lift-off's rows at h -> 0 would own 1/h^2
@@ -76,6 +78,9 @@ class DiscoverySettings:
     # (--settings), but on the README's paper-train flight (h 70-200 m) the larger pool crowded the screening
     # and the pick took u4^2/h for the thrust (with 2: the true -ct sum(u_i^2))
     inverse_powers: int = 2
+    # no feature of a positive primitive (the height) whose relative spread std/mean on the fit rows is below
+    # this: a flight at 10 +- 0.05 m cannot tell h vb^2 from vb^2 (identification.feature_space.barely_varies)
+    min_spread: float = 0.01
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
     screen: int = 60  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3
