@@ -123,6 +123,7 @@ class DiscoveryEngine:
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
         self._features: dict[int, np.ndarray] = {}  # id(candidate) -> its feature indices in the space
+        self.notes: list[str] = []  # identifiability notes of the last fit (identify prints them)
 
     def build_space(self, X: np.ndarray) -> FeatureSpace:
         """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
@@ -195,6 +196,10 @@ class DiscoveryEngine:
                 Z = _standardized(F)
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
+        # what the flight cannot identify, for identify's terminal and model file (identifiability notes)
+        self.notes = [f"{why}: none of its features is built (a term times it cannot be told from the term "
+                      "alone on this flight; vary it more to identify its effects)"
+                      for why in space.pruned if "barely varies" in why]
         weak, weak_h = self.weak or (None, None)
         y_point = y
         if weak is not None:  # every column and the target integrated against the test functions

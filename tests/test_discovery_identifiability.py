@@ -93,6 +93,7 @@ def test_a_height_that_barely_varies_gives_no_features_and_the_simpler_term_wins
     best, engine = _pick(X, _values(truth, X), "fz")
     _assert_terms(best.expression, sympy.expand(truth))
     assert any(k.startswith("h: barely varies") for k in engine.stats["pruned"])
+    assert any(n.startswith("h: barely varies") for n in engine.notes)  # identify prints and records it
     # a height that varies (5-50 m) keeps its features
     X = _rows(500, 3)
     space = grow_unary(names, ("pow", "inv"), primitive_matrix(X, names), min_spread=0.01)
