@@ -11,8 +11,9 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
    model no better on the held-out rows (small effects surface once the large ones are fitted; a round
    that finds nothing new costs the next one, at most);
 5. genetic programming (pyoperon), seeded with the primitives and the picked model's features, fits the
-   picked model's residual for a fixed number of generations (always: no threshold gates it); each front
-   member added to the sparse model is one more candidate.
+   picked model's residual for a fixed number of generations (always: no threshold gates it); the front's
+   expressions come back expanded into their additive terms, which join the picked model's features in one
+   more sparse fit (refit, pruned and identified term by term like any feature).
 The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
 dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
 Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
@@ -234,7 +235,10 @@ class DiscoveryEngine:
             if not new:
                 break
             pool += new
-            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
+            ids = np.asarray(pool)
+            round_cands = self._sparsify(
+                [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
+                list(pool), lambda X_, js, ids=ids: columns(X_, ids[js]), y, loss, seen, space_indices=ids)
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
@@ -266,21 +270,27 @@ class DiscoveryEngine:
 
     def _sparsify(
         self,
-        space: FeatureSpace,
-        columns: _Columns,
+        exprs: list[sympy.Expr],
+        groups: list[str],
         theta_pool: np.ndarray,
-        pool: np.ndarray,
+        keys: list[Any],
+        evaluate: Callable[[np.ndarray, np.ndarray], np.ndarray],
         y: np.ndarray,
         loss: str,
-        seen: set[frozenset[int]],
+        seen: set[frozenset],
+        space_indices: np.ndarray | None = None,
+        engine: str | None = None,
     ) -> list[Candidate]:
-        """Every new active set of the sparse paths over (1, pool features) as a candidate (seen: sets so far,
-        as feature indices with -1 for the constant)."""
+        """Every new active set of the sparse paths over (1, pool columns) as a candidate.
+
+        Per pool column: its expression, group, values on the fit rows (theta_pool, N x k) and a hashable
+        key; evaluate(X_, js) gives columns js (pool positions) on any rows X_ (N,16). seen: the active sets
+        so far, as frozensets of keys with -1 for the constant. space_indices: the columns' indices in the
+        feature space (recorded per candidate for the projected screening), when they are space features."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
         problem = LeastSquaresProblem(theta, y)
-        exprs = [sympy.Integer(1)] + [space.expressions[i] for i in pool]
-        feats = [Feature(f"x{k}", e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
-                 for k, e in enumerate(exprs)]
+        exprs = [sympy.Integer(1), *exprs]
+        feats = [Feature(f"x{k}", e, "const" if k == 0 else groups[k - 1]) for k, e in enumerate(exprs)]
         nodes = [complexity(e) for e in exprs]
         sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes)
         by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
@@ -288,7 +298,7 @@ class DiscoveryEngine:
         for k, active in enumerate(sets):
             if active.sum() > limit:  # larger models are never kept: not solved either
                 continue
-            key = frozenset(int(pool[j - 1]) if j > 0 else -1 for j in np.flatnonzero(active))
+            key = frozenset(keys[j - 1] if j > 0 else -1 for j in np.flatnonzero(active))
             if key in seen:
                 continue
             seen.add(key)
@@ -307,7 +317,7 @@ class DiscoveryEngine:
             expr = sparse_expression(feats, coef)
             size = sum(nodes[j] + (1 if j == 0 else 2) for j in idx) + (1 if idx.size > 1 else 0)
             c = coef[idx]
-            fidx = np.asarray([pool[j - 1] for j in idx if j > 0], int)
+            js = np.asarray([j - 1 for j in idx if j > 0], int)
             const = float(coef[0]) if 0 in idx else 0.0
             cf = np.asarray([coef[j] for j in idx if j > 0])
             out.append(
@@ -315,12 +325,13 @@ class DiscoveryEngine:
                     expression=expr,
                     complexity=size,
                     train_loss=loss_fn(y, theta[:, idx] @ c, loss),
-                    engine=self.name,
-                    predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
+                    engine=engine or self.name,
+                    predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
                 )
             )
             out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
-            self._features[id(out[-1])] = fidx
+            if space_indices is not None:
+                self._features[id(out[-1])] = space_indices[js]
         return out
 
     def _operon(
@@ -375,6 +386,7 @@ class DiscoveryEngine:
         self.stats["operon_front"] = len(reg.pareto_front_)
         out: list[Candidate] = []
         seen: set[str] = set()
+        extras: list[sympy.Expr] = []
         for point in reg.pareto_front_:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # "Model contains no variables" for a constant
@@ -404,7 +416,52 @@ class DiscoveryEngine:
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
             if shapes:
                 out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
-        return out
+            extras.append(extra)
+        return self._refit_expanded(best, extras, every, columns, X, y, loss) or out
+
+    def _refit_expanded(
+        self,
+        best: Candidate,
+        extras: list[sympy.Expr],
+        prims: list[str],
+        columns: _Columns,
+        X: np.ndarray,
+        y: np.ndarray,
+        loss: str,
+    ) -> list[Candidate]:
+        """The GP front's expressions back in the sparse selection as their expanded terms: each expanded
+        into its additive terms (coefficients dropped), which join the picked model's features in one more
+        sparse fit (least squares, the sparse paths, the pick's rules), so a GP product is refit and pruned
+        term by term, and a candidate costs the complexity of the terms it keeps, not of one opaque tree.
+        A term that is a combination of the others (u1*ub beside ub*(u1+u2+u3+u4) ...) is left out as in the
+        pool, and so is a front member expanding to more terms than 3 x max_terms; [] when no term is new
+        (the caller then keeps the GP candidates as they are). y: point targets (N,) of the fit rows X."""
+        base = _product_factors(best.expression)
+        shapes = list(base)
+        for extra in extras:
+            try:
+                new = [t for t in term_shapes(sympy.expand(extra)) if t != 1 and t not in shapes]
+            except (RecursionError, TypeError, ValueError):
+                continue
+            if len(shapes) + len(new) <= 3 * self.settings.max_terms:
+                shapes += new
+        if len(shapes) == len(base):
+            return []
+        cols = _lambdify(prims, shapes)(columns.primitives(X))
+        basis = _Basis(len(X))  # the picked model's features first; a GP term only where independent of them
+        finite = np.array([bool(np.all(np.isfinite(c))) and basis.add(c) for c in cols.T])
+        shapes = [e for e, ok in zip(shapes, finite, strict=True) if ok]
+        fn = _lambdify(prims, shapes)
+
+        def evaluate(X_: np.ndarray, js: np.ndarray) -> np.ndarray:
+            return fn(columns.primitives(X_))[:, js]
+
+        theta, target = cols[:, finite], y
+        if self.weak is not None and self.weak[0] is not None:
+            theta, target = np.asarray(self.weak[0] @ theta), self.weak[0] @ y
+        groups = ["picked" if e in base else "operon" for e in shapes]
+        return self._sparsify(shapes, groups, theta, [str(e) for e in shapes], evaluate, target, loss, set(),
+                              engine=f"{self.name}(+operon)")
 
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)

@@ -118,3 +118,21 @@ def test_gravity_left_by_another_g_is_learned_as_a_lone_term_and_cancels_in_the_
     acc = np.atleast_2d(composed.evaluate(X[:50, :12], X[:50, 12:]))
     assert np.allclose(acc[:, 0], 0.0, atol=1e-12) and np.allclose(acc[:, 1], 0.0, atol=1e-12)
     assert np.allclose(acc[:, 2], 9.81, atol=1e-12)
+
+
+def test_a_genetic_programming_product_comes_back_as_its_terms_refit_and_pruned():
+    # ub*wx*wz is a product of three primitives: no rung-2 feature holds it, the GP on the sparse model's
+    # residual finds it; its terms then join the picked model's features in one more sparse fit, so the pick
+    # is the exact sum of the true terms with least-squares coefficients, not "model + opaque GP tree"
+    truth = -2e-4 * P["ub"] * (P["u1"] + P["u2"] + P["u3"] + P["u4"]) + 0.05 * P["ub"] * P["wx"] * P["wz"]
+    X = _rows(2000, 5, spread=0.5)
+    Xt, yt, Xh, yh = split_holdout(X, _values(truth, X))
+    engine = DiscoveryEngine(DiscoverySettings(rounds=3, operon_population=100))
+    cands = engine.fit(Xt, yt, "fx", 20, 0, "absolute", None, (Xh, yh))
+    attach_holdout(cands, Xh, yh, "absolute")
+    best = select(cands, SelectionSettings(), float(np.std(yh)))
+    assert best.engine.endswith("(+operon)")
+    _assert_terms(best.expression, sympy.expand(truth))
+    gp = [c for c in cands if c.engine.endswith("(+operon)")]
+    assert gp and all(c.weakest_t is not None for c in gp)  # linear in their terms: t ratios measured
+    assert all(abs(float(t.as_coeff_Mul()[0])) > 0 for t in sympy.Add.make_args(best.expression))
