@@ -12,16 +12,17 @@ NED and FRD; both flips are the rotation by pi about x, T = diag(1, -1, -1):
   u3 front-left, u4 rear-right) from RotorPy's r1 front-left, r2 front-right, r3 rear-right, r4 rear-left.
 The accelerations written (ax ay az NED m/s^2, dwx dwy dwz FRD rad/s^2) are RotorPy's own state derivative
 (`Multirotor.statedot`) at each logged state, as RotorPy's simulate returns them (truth targets).
-RotorPy's g is 9.81 m/s^2, and `quadsr identify` without --vehicle removes 9.80665: the learned fx fy fz
-then hold the 0.00335 m/s^2 left along the gravity direction (gbx gby gbz), so the body-frame reference
-does too (with_gravity_residual); a true term the training flight cannot pin down even given the true
+RotorPy's g is 9.81 m/s^2, given to `quadsr identify --gravity 9.81` as a user who knows their
+simulator's would (without it 9.80665 is removed and 0.00335 R^T e_z m/s^2 is left in fx fy fz, no
+function of the default primitives); a true term the training flight cannot pin down even given the true
 structure (t below selection.min_t, bench/discovery.py's unidentifiable_terms) is listed apart.
 
-Then quadsr as a new user runs it, in separate processes: `quadsr identify train.csv -o model.yaml`
-(defaults) and `quadsr validate model.yaml validate.csv`. The learned body-frame expressions are compared
-with RotorPy's true physics written out from its parameters (`true_body_physics`, checked here against
-RotorPy's own derivative on every logged row), monomial by monomial. Baselines on the same data, from
-bench/discovery.py: OLS on a 3-term physics library and PySINDy with the physics library. One table
+Then quadsr as a new user runs it, in separate processes: `quadsr identify train.csv -o model.yaml
+--gravity 9.81` (defaults otherwise) and `quadsr validate model.yaml validate.csv`. The learned body-frame
+expressions are compared with RotorPy's true physics written out from its parameters
+(`true_body_physics`, checked here against RotorPy's own derivative on every logged row), monomial by
+monomial. Baselines on the same data, from bench/discovery.py: OLS on a 3-term physics library and
+PySINDy with the physics library. One table
 (OUT/independent_sim.md, .csv), a PNG (OUT/independent_sim.png), PASS/FAIL per the issue's floors (truth
 targets: R^2 >= 0.9999 on the other flight, coefficients within 5 %, the true terms and no others, at
 most 1.5x the true term count, at least as good as every baseline; a 60 s flight in under 2 CPU minutes).
@@ -47,7 +48,6 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from identification.body_frame import (  # noqa: E402
     PRIMITIVE_SYMBOLS,
-    STANDARD_GRAVITY,
     body_targets,
     compose_ned,
     primitive_matrix,
@@ -114,17 +114,6 @@ def true_body_physics(params: dict) -> dict[str, sympy.Expr]:
     fb, dwb = flip * force / f(params["mass"]), flip * dw
     names = ("fx", "fy", "fz", "dwx", "dwy", "dwz")
     return {n: sympy.expand(e) for n, e in zip(names, [*fb, *dwb], strict=True)}
-
-
-def with_gravity_residual(body: dict[str, sympy.Expr], residual: float) -> dict[str, sympy.Expr]:
-    """The body-frame targets as an identification sees them when the gravity it removes is `residual`
-    (m/s^2) below the data's: fx fy fz each plus residual times the gravity direction R^T e_z (gbx gby gbz),
-    the lone term the engine learns for it (identification.body_frame); the composed x'' y'' z'' are
-    unchanged."""
-    out = dict(body)
-    for name, g in (("fx", "gbx"), ("fy", "gby"), ("fz", "gbz")):
-        out[name] = sympy.expand(body[name] + sympy.Float(residual) * PRIMITIVE_SYMBOLS[g])
-    return out
 
 
 def fly(seed: int, duration: float) -> dict[str, np.ndarray]:
@@ -265,7 +254,7 @@ def main() -> int:
     print(f"written physics against RotorPy's own derivative, largest difference: {worst:.2e}")
     model_path = out / "model.yaml"
     rc, wall, cpu = quadsr("identify", str(paths[0]), "-o", str(model_path), "--no-progress",
-                           log=out / "identify.log")
+                           "--gravity", f"{ROTORPY_GRAVITY:g}", log=out / "identify.log")
     print(f"quadsr identify: exit {rc}, {wall:.1f} s wall, {cpu:.1f} s CPU (log {out / 'identify.log'})")
     if rc != 0:
         print("FAIL")
@@ -276,10 +265,8 @@ def main() -> int:
     train, val = load_dataset(paths[0]), load_dataset(paths[1])
     reference = Model({**compose_ned(body, ROTORPY_GRAVITY),
                        **{n: to_variables(body[n]) for n in ("dwx", "dwy", "dwz")}})
-    # what `quadsr identify` (no --vehicle: 9.80665 removed) learns in the body frame: RotorPy's physics and
-    # the 0.00335 m/s^2 of gravity left along R^T e_z
-    learned_ref = with_gravity_residual(body, ROTORPY_GRAVITY - STANDARD_GRAVITY)
-    hidden = disc.unidentifiable_terms(learned_ref, train, STANDARD_GRAVITY, weak=False)
+    learned_ref = body  # identify is given RotorPy's g (--gravity): nothing of it is left to learn
+    hidden = disc.unidentifiable_terms(learned_ref, train, ROTORPY_GRAVITY, weak=False)
     for name, terms in hidden.items():
         if terms:
             print(f"  {name}: true terms this training flight cannot pin down (t < "

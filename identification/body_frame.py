@@ -14,9 +14,10 @@ counting as dimensionless (PhySO-style unit vectors):
   h            height above the ground = -z (m; > 0 when flying; for ground effect)
   phi, theta   roll, pitch (rad; not in the default set: with gravity removed the body-frame physics does
                not depend on attitude, so they only let closed-loop correlations in)
-  gbx gby gbz  the gravity's direction in the body, R^T e_z (FRD, dimensionless): each a lone term of its
-               own force target only (fx, fy, fz; no operator, no product): the gravity removed (the
-               vehicle's, else 9.80665 m/s^2) is rarely the data's to 1e-4 (RotorPy and jMAVSim fly with
+  gbx gby gbz  the gravity's direction in the body, R^T e_z (FRD, dimensionless; not in the default set,
+               for data whose g is not known): each a lone term of its own force target only (fx, fy, fz;
+               no operator, no product): the gravity removed (identify --gravity, the vehicle's, else
+               9.80665 m/s^2) is not always the data's to 1e-4 (RotorPy and jMAVSim fly with
                9.81; the local g varies by 0.5 % over the Earth), and what it leaves, dg R^T e_z, is no
                function of the other primitives; learned as dg gbz in fz, it cancels exactly in the
                composed x'' y'' z''

@@ -414,8 +414,9 @@ class DiscoveryEngine:
                 )
             )
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
-            if shapes:
-                out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
+            if shapes:  # every primitive: the picked model may hold a lone term (gbz) the GP does not see
+                out[-1].weakest_t, out[-1].largest_vif = term_identification(
+                    _lambdify(every, shapes)(columns.primitives(X)), y)
             extras.append(extra)
         return self._refit_expanded(best, extras, every, columns, X, y, loss) or out
 

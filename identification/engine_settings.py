@@ -67,9 +67,9 @@ class DiscoverySettings:
     seconds.
     """
 
-    # gbx gby gbz: the gravity direction, a lone term of fx, fy, fz each (identification.body_frame)
-    primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h",
-                                   "gbx", "gby", "gbz")
+    # not in the defaults: gbx gby gbz, the gravity direction, a lone term of fx, fy, fz each
+    # (identification.body_frame), for data whose g is not known (identify --gravity or --vehicle gives it)
+    primitives: tuple[str, ...] = ("ub", "vb", "wb", "wx", "wy", "wz", "u1", "u2", "u3", "u4", "h")
     operators: tuple[str, ...] = ("mul", "pow", "abs", "inv", "norm", "sincos", "add")
     # 1/x of a positive primitive (the height) only where its smallest value on the fit rows is at least its
     # median / inverse_span (identification.feature_space): a lift-off's rows at h -> 0 would own 1/h^2

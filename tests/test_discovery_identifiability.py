@@ -4,8 +4,9 @@
   sum varies by a few %) is screened by what it adds to the model, so it comes in;
 - a positive primitive that barely varies (the height within +-0.5 %) gives no features: h*vb^2 cannot be
   told from vb^2, and the simpler one wins;
-- the gravity left by a removed g other than the data's is a lone term along R^T e_z of fx, fy, fz only, and
-  it cancels exactly in the composed x'', y'', z''.
+- the gravity left by a removed g other than the data's is a lone term along R^T e_z of fx, fy, fz only
+  (the primitives gbx gby gbz, opt-in: not in the defaults), and it cancels exactly in the composed x'', y'',
+  z''; `quadsr identify --gravity G` gives the data's g instead.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from identification.true_model import random_states
 from identification.validate import expression_terms
 
 P = PRIMITIVE_SYMBOLS
+WITH_GRAVITY = (*DiscoverySettings().primitives, "gbx", "gby", "gbz")  # the lone gravity terms, opt-in
 
 
 def _rows(n: int, seed: int, hover: float = 600.0, spread: float = 0.03, height=(5.0, 50.0)):
@@ -104,14 +106,15 @@ def test_gravity_left_by_another_g_is_learned_as_a_lone_term_and_cancels_in_the_
     X = _rows(3000, 4)
     dg = 9.81 - 9.80665  # RotorPy's g against the standard one removed
     truth = -1.1e-5 * (P["u1"] ** 2 + P["u2"] ** 2 + P["u3"] ** 2 + P["u4"] ** 2) - 0.03 * P["ub"] ** 2
-    best, engine = _pick(X, _values(truth + dg * P["gbz"], X), "fz")
+    settings = DiscoverySettings(rounds=6, primitives=WITH_GRAVITY)
+    best, engine = _pick(X, _values(truth + dg * P["gbz"], X), "fz", settings)
     _assert_terms(best.expression, sympy.expand(truth + dg * P["gbz"]))
     # each lone term belongs to its own force target only: never offered to another target, never multiplied
     space = engine.build_space(X)
     assert sorted(lone_features(space).values()) == ["fx", "fy", "fz"]
     assert not any(len(e.free_symbols & {P["gbx"], P["gby"], P["gbz"]}) and not e.is_Symbol
                    for e in space.expressions)
-    best_dwx, _ = _pick(X, _values(truth * 0.1 + 0.004 * P["gbx"], X), "dwx")
+    best_dwx, _ = _pick(X, _values(truth * 0.1 + 0.004 * P["gbx"], X), "dwx", settings)
     assert not best_dwx.expression.free_symbols & {P["gbx"], P["gby"], P["gbz"]}
     # R f_b + g e_z with f_b = dg R^T e_z: exactly (0, 0, g + dg) whatever the attitude
     composed = Model(compose_ned({"fx": dg * P["gbx"], "fy": dg * P["gby"], "fz": dg * P["gbz"]}, 9.80665))
@@ -136,3 +139,35 @@ def test_a_genetic_programming_product_comes_back_as_its_terms_refit_and_pruned(
     gp = [c for c in cands if c.engine.endswith("(+operon)")]
     assert gp and all(c.weakest_t is not None for c in gp)  # linear in their terms: t ratios measured
     assert all(abs(float(t.as_coeff_Mul()[0])) > 0 for t in sympy.Add.make_args(best.expression))
+
+
+def test_genetic_programming_runs_beside_a_picked_lone_gravity_term():
+    # noisy fz whose pick holds gbz: the GP (which does not see the lone terms) still measures its candidates'
+    # terms, the picked gbz among them, over every primitive (a NameError on gbz before)
+    X = _rows(1500, 6)
+    truth = -1.1e-5 * (P["u1"] ** 2 + P["u2"] ** 2 + P["u3"] ** 2 + P["u4"] ** 2) + 0.05 * P["gbz"]
+    y = _values(truth, X)
+    y = y + np.random.default_rng(6).normal(0.0, 1e-3 * np.std(y), len(y))
+    Xt, yt, Xh, yh = split_holdout(X, y)
+    engine = DiscoveryEngine(DiscoverySettings(rounds=2, operon_population=60, primitives=WITH_GRAVITY))
+    cands = engine.fit(Xt, yt, "fz", 3, 0, "absolute", None, (Xh, yh))
+    assert engine.stats["operon_generations"] == 3
+    attach_holdout(cands, Xh, yh, "absolute")
+    best = select(cands, SelectionSettings(), float(np.std(yh)))
+    assert P["gbz"] in best.expression.free_symbols
+    assert any(c.engine.endswith("(+operon)") and c.weakest_t is not None for c in cands)
+
+
+def test_identify_gravity_option_bad_value_or_with_a_vehicle_is_a_clear_error(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parent.parent
+    for extra, message in ((["--gravity", "0"], "not a gravity"),
+                           (["--gravity", "9.81", "--vehicle", "fang-chen-buaa"], "both give the gravity")):
+        proc = subprocess.run([sys.executable, "-m", "quadsr.cli", "identify", str(tmp_path / "none.csv"),
+                               "-o", str(tmp_path / "m.yaml"), *extra], cwd=repo, capture_output=True,
+                              text=True, check=False)
+        assert proc.returncode == 2, proc.stderr
+        assert message in proc.stderr and "Traceback" not in proc.stderr
