@@ -12,12 +12,17 @@ NED and FRD; both flips are the rotation by pi about x, T = diag(1, -1, -1):
   u3 front-left, u4 rear-right) from RotorPy's r1 front-left, r2 front-right, r3 rear-right, r4 rear-left.
 The accelerations written (ax ay az NED m/s^2, dwx dwy dwz FRD rad/s^2) are RotorPy's own state derivative
 (`Multirotor.statedot`) at each logged state, as RotorPy's simulate returns them (truth targets).
+RotorPy's g is 9.81 m/s^2, given to `quadsr identify --gravity 9.81` as a user who knows their
+simulator's would (without it 9.80665 is removed and 0.00335 R^T e_z m/s^2 is left in fx fy fz, no
+function of the default primitives); a true term the training flight cannot pin down even given the true
+structure (t below selection.min_t, bench/discovery.py's unidentifiable_terms) is listed apart.
 
-Then quadsr as a new user runs it, in separate processes: `quadsr identify train.csv -o model.yaml`
-(defaults) and `quadsr validate model.yaml validate.csv`. The learned body-frame expressions are compared
-with RotorPy's true physics written out from its parameters (`true_body_physics`, checked here against
-RotorPy's own derivative on every logged row), monomial by monomial. Baselines on the same data, from
-bench/discovery.py: OLS on a 3-term physics library and PySINDy with the physics library. One table
+Then quadsr as a new user runs it, in separate processes: `quadsr identify train.csv -o model.yaml
+--gravity 9.81` (defaults otherwise) and `quadsr validate model.yaml validate.csv`. The learned body-frame
+expressions are compared with RotorPy's true physics written out from its parameters
+(`true_body_physics`, checked here against RotorPy's own derivative on every logged row), monomial by
+monomial. Baselines on the same data, from bench/discovery.py: OLS on a 3-term physics library and
+PySINDy with the physics library. One table
 (OUT/independent_sim.md, .csv), a PNG (OUT/independent_sim.png), PASS/FAIL per the issue's floors (truth
 targets: R^2 >= 0.9999 on the other flight, coefficients within 5 %, the true terms and no others, at
 most 1.5x the true term count, at least as good as every baseline; a 60 s flight in under 2 CPU minutes).
@@ -49,9 +54,11 @@ from identification.body_frame import (  # noqa: E402
     to_variables,
 )
 from identification.dataset import load_dataset  # noqa: E402
+from identification.engine_settings import SelectionSettings  # noqa: E402
 from identification.model_file import TARGET_NAMES, Model, load_model  # noqa: E402
 
 FLIP = np.diag([1.0, -1.0, -1.0])  # z-up world -> NED, FLU body -> FRD (rotation by pi about x)
+ROTORPY_GRAVITY = 9.81  # m/s^2, Multirotor.g; quadsr identify without --vehicle removes 9.80665
 ROTOR_ORDER = (1, 3, 0, 2)  # PX4 Quad-X u1..u4 <- RotorPy rotor index (r2 FR, r4 RL, r1 FL, r3 RR)
 STEP = 0.004  # s, RotorPy step and logging interval (250 Hz)
 COLUMNS = ("t", "x", "y", "z", "vx", "vy", "vz", "qw", "qx", "qy", "qz", "wx", "wy", "wz",
@@ -161,7 +168,7 @@ def physics_check(cols: dict[str, np.ndarray], body: dict[str, sympy.Expr]) -> f
                         + [cols[c] for c in ("wx", "wy", "wz", "u1", "u2", "u3", "u4")])
     prim = primitive_matrix(X, names)
     targets = np.column_stack([cols[c] for c in TARGET_NAMES])
-    meas = body_targets(X[:, :12], targets, 9.81)  # RotorPy's g
+    meas = body_targets(X[:, :12], targets, ROTORPY_GRAVITY)
     worst = 0.0
     for j, name in enumerate(("fx", "fy", "fz", "dwx", "dwy", "dwz")):
         fn = sympy.lambdify([PRIMITIVE_SYMBOLS[s] for s in names], body[name], "numpy")
@@ -247,7 +254,7 @@ def main() -> int:
     print(f"written physics against RotorPy's own derivative, largest difference: {worst:.2e}")
     model_path = out / "model.yaml"
     rc, wall, cpu = quadsr("identify", str(paths[0]), "-o", str(model_path), "--no-progress",
-                           log=out / "identify.log")
+                           "--gravity", f"{ROTORPY_GRAVITY:g}", log=out / "identify.log")
     print(f"quadsr identify: exit {rc}, {wall:.1f} s wall, {cpu:.1f} s CPU (log {out / 'identify.log'})")
     if rc != 0:
         print("FAIL")
@@ -256,13 +263,20 @@ def main() -> int:
                         log=out / "validate.log")
     print(f"quadsr validate: exit {rc_v} (log {out / 'validate.log'})")
     train, val = load_dataset(paths[0]), load_dataset(paths[1])
-    reference = Model({**compose_ned(body, 9.81),
+    reference = Model({**compose_ned(body, ROTORPY_GRAVITY),
                        **{n: to_variables(body[n]) for n in ("dwx", "dwy", "dwz")}})
+    learned_ref = body  # identify is given RotorPy's g (--gravity): nothing of it is left to learn
+    hidden = disc.unidentifiable_terms(learned_ref, train, ROTORPY_GRAVITY, weak=False)
+    for name, terms in hidden.items():
+        if terms:
+            print(f"  {name}: true terms this training flight cannot pin down (t < "
+                  f"{SelectionSettings().min_t:g} given the true structure): {', '.join(terms)}")
     case = disc.Case("rotorpy hummingbird")
-    rows = [disc.score(case.name, "discovery", load_model(model_path), val, reference, body, wall, cpu)]
+    rows = [disc.score(case.name, "discovery", load_model(model_path), val, reference, learned_ref, wall, cpu,
+                       unidentifiable=hidden)]
     for engine in ("ols-3term", "pysindy-physics"):
         start, cpu_start = time.perf_counter(), time.process_time()
-        model = disc.fit(engine, train, args.seed, 9.81, 0, 0)
+        model = disc.fit(engine, train, args.seed, ROTORPY_GRAVITY, 0, 0)
         rows.append(disc.score(case.name, engine, model, val, reference, body, time.perf_counter() - start,
                                time.process_time() - cpu_start))
     floors = disc.case_floors(case, rows, 0.0)

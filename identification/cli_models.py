@@ -140,6 +140,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--vehicle", default=None, metavar="NAME|FILE", help="vehicle flown, recorded in the model file "
         "(its gravity is used for body-frame learning)"
     )
+    p.add_argument(
+        "--gravity", type=float, default=None, metavar="G",
+        help="the data's gravity, m/s^2 (default: the --vehicle's, else 9.80665), removed by body-frame "
+        "learning: give a simulator's (RotorPy and jMAVSim: 9.81)"
+    )
     _add_row_options(p)
     p.add_argument(
         "--report",
@@ -331,6 +336,15 @@ def run_identify(args: argparse.Namespace) -> int:
 
         vehicle_config = load_vehicle(args.vehicle)
         vehicle, gravity = vehicle_provenance(vehicle_config), vehicle_config.gravity
+    given_g = getattr(args, "gravity", None)
+    if given_g is not None:
+        if args.vehicle:
+            raise UserError("--gravity and --vehicle both give the gravity",
+                            hint="drop --gravity: the vehicle file's gravity is used")
+        if not (math.isfinite(given_g) and 1.0 <= given_g <= 30.0):
+            raise UserError(f"--gravity {given_g:g}: not a gravity in m/s^2 (1 to 30)",
+                            hint="give the data's g, e.g. --gravity 9.81")
+        gravity = float(given_g)
     if args.weak is None and args.engine not in ("default", "discovery"):
         args.weak = False
     weak = _weak_settings(args)

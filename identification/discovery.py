@@ -11,8 +11,9 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
    model no better on the held-out rows (small effects surface once the large ones are fitted; a round
    that finds nothing new costs the next one, at most);
 5. genetic programming (pyoperon), seeded with the primitives and the picked model's features, fits the
-   picked model's residual for a fixed number of generations (always: no threshold gates it); each front
-   member added to the sparse model is one more candidate.
+   picked model's residual for a fixed number of generations (always: no threshold gates it); the front's
+   expressions come back expanded into their additive terms, which join the picked model's features in one
+   more sparse fit (refit, pruned and identified term by term like any feature).
 The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
 dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
 Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
@@ -35,7 +36,12 @@ from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_m
 from identification.candidate import Candidate, Progress
 from identification.collinearity import term_identification, term_shapes
 from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
-from identification.feature_space import OPERATORS, FeatureSpace, grow_products, grow_unary
+from identification.feature_space import (
+    OPERATORS,
+    FeatureSpace,
+    grow_products,
+    grow_unary,
+)
 from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
@@ -119,6 +125,8 @@ class DiscoveryEngine:
         self.weak: tuple[Any, Any] | None = None
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
+        self._features: dict[int, np.ndarray] = {}  # id(candidate) -> its feature indices in the space
+        self.notes: list[str] = []  # identifiability notes of the last fit (identify prints them)
 
     def build_space(self, X: np.ndarray) -> FeatureSpace:
         """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
@@ -126,7 +134,7 @@ class DiscoveryEngine:
         P = primitive_matrix(X, s.primitives)
         space = grow_unary(s.primitives, s.operators, P, s.inverse_span, s.inverse_powers,
                            near_inverse_powers=s.near_inverse_powers, near_spread=s.near_spread,
-                           abs_sign_share=s.abs_sign_share)
+                           abs_sign_share=s.abs_sign_share, min_spread=s.min_spread)
         unary = list(range(len(space)))
         if s.rungs >= 2 and "mul" in s.operators:
             grow_products(space, unary, unary, 2)
@@ -190,6 +198,10 @@ class DiscoveryEngine:
                 Z = _standardized(F)
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
+        # what the flight cannot identify, for identify's terminal and model file (identifiability notes)
+        self.notes = [f"{why}: none of its features is built (a term times it cannot be told from the term "
+                      "alone on this flight; vary it more to identify its effects)"
+                      for why in space.pruned if "barely varies" in why]
         weak, weak_h = self.weak or (None, None)
         y_point = y
         if weak is not None:  # every column and the target integrated against the test functions
@@ -207,22 +219,27 @@ class DiscoveryEngine:
         best: Candidate | None = None
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
         for rnd in range(max(s.rounds, 1)):
-            scores = _screen_scores(Z, residual)
+            model_cols = F[:, self._features.get(id(best), np.zeros(0, int))]
+            scores = _projected_scores(Z, residual, model_cols)
             scores[pool] = -np.inf
             order = np.argsort(-scores, kind="stable")
             new = basis.add_first(F, order[np.isfinite(scores[order])], limit=s.screen)
             if not new:
                 break
             pool += new
-            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
+            ids = np.asarray(pool)
+            round_cands = self._sparsify(
+                [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
+                list(pool), lambda X_, js, ids=ids: columns(X_, ids[js]), y, loss, seen, space_indices=ids)
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
             residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
             if progress:
-                progress(0.7 * (rnd + 1) / max(s.rounds, 1), f"round {rnd + 1}: pool {len(pool)}")
+                progress(0.7 * (rnd + 1) / max(s.rounds, 1),
+                         f"round {rnd + 1}: pool {len(pool)}, pick loss {best.holdout_loss:.3g}")
             stale = stale + 1 if previous is not None and not _better(best, previous, scale) else 0
-            if stale >= max(s.patience, 1):
+            if stale >= max(s.patience, 1) or _exact(best, scale):
                 break
         self.stats["rounds"] = rnd + 1
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
@@ -245,21 +262,27 @@ class DiscoveryEngine:
 
     def _sparsify(
         self,
-        space: FeatureSpace,
-        columns: _Columns,
+        exprs: list[sympy.Expr],
+        groups: list[str],
         theta_pool: np.ndarray,
-        pool: np.ndarray,
+        keys: list[Any],
+        evaluate: Callable[[np.ndarray, np.ndarray], np.ndarray],
         y: np.ndarray,
         loss: str,
-        seen: set[frozenset[int]],
+        seen: set[frozenset],
+        space_indices: np.ndarray | None = None,
+        engine: str | None = None,
     ) -> list[Candidate]:
-        """Every new active set of the sparse paths over (1, pool features) as a candidate (seen: sets so far,
-        as feature indices with -1 for the constant)."""
+        """Every new active set of the sparse paths over (1, pool columns) as a candidate.
+
+        Per pool column: its expression, group, values on the fit rows (theta_pool, N x k) and a hashable
+        key; evaluate(X_, js) gives columns js (pool positions) on any rows X_ (N,16). seen: the active sets
+        so far, as frozensets of keys with -1 for the constant. space_indices: the columns' indices in the
+        feature space (recorded per candidate for the projected screening), when they are space features."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
         problem = LeastSquaresProblem(theta, y)
-        exprs = [sympy.Integer(1)] + [space.expressions[i] for i in pool]
-        feats = [Feature(f"x{k}", e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
-                 for k, e in enumerate(exprs)]
+        exprs = [sympy.Integer(1), *exprs]
+        feats = [Feature(f"x{k}", e, "const" if k == 0 else groups[k - 1]) for k, e in enumerate(exprs)]
         nodes = [complexity(e) for e in exprs]
         sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes)
         by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
@@ -267,7 +290,7 @@ class DiscoveryEngine:
         for k, active in enumerate(sets):
             if active.sum() > limit:  # larger models are never kept: not solved either
                 continue
-            key = frozenset(int(pool[j - 1]) if j > 0 else -1 for j in np.flatnonzero(active))
+            key = frozenset(keys[j - 1] if j > 0 else -1 for j in np.flatnonzero(active))
             if key in seen:
                 continue
             seen.add(key)
@@ -286,7 +309,7 @@ class DiscoveryEngine:
             expr = sparse_expression(feats, coef)
             size = sum(nodes[j] + (1 if j == 0 else 2) for j in idx) + (1 if idx.size > 1 else 0)
             c = coef[idx]
-            fidx = np.asarray([pool[j - 1] for j in idx if j > 0], int)
+            js = np.asarray([j - 1 for j in idx if j > 0], int)
             const = float(coef[0]) if 0 in idx else 0.0
             cf = np.asarray([coef[j] for j in idx if j > 0])
             out.append(
@@ -294,11 +317,13 @@ class DiscoveryEngine:
                     expression=expr,
                     complexity=size,
                     train_loss=loss_fn(y, theta[:, idx] @ c, loss),
-                    engine=self.name,
-                    predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
+                    engine=engine or self.name,
+                    predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
                 )
             )
             out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
+            if space_indices is not None:
+                self._features[id(out[-1])] = space_indices[js]
         return out
 
     def _operon(
@@ -352,6 +377,7 @@ class DiscoveryEngine:
         self.stats["operon_front"] = len(reg.pareto_front_)
         out: list[Candidate] = []
         seen: set[str] = set()
+        extras: list[sympy.Expr] = []
         for point in reg.pareto_front_:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # "Model contains no variables" for a constant
@@ -380,8 +406,56 @@ class DiscoveryEngine:
             )
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
             if shapes:
-                out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
-        return out
+                out[-1].weakest_t, out[-1].largest_vif = term_identification(
+                    _lambdify(prims, shapes)(columns.primitives(X)), y)
+            extras.append(extra)
+        return self._refit_expanded(best, extras, prims, columns, X, y, loss) or out
+
+    def _refit_expanded(
+        self,
+        best: Candidate,
+        extras: list[sympy.Expr],
+        prims: list[str],
+        columns: _Columns,
+        X: np.ndarray,
+        y: np.ndarray,
+        loss: str,
+    ) -> list[Candidate]:
+        """The GP front's expressions back in the sparse selection as their expanded terms: each expanded
+        into its additive terms (coefficients dropped), which join the picked model's features in one more
+        sparse fit (least squares, the sparse paths, the pick's rules), so a GP product is refit and pruned
+        term by term, and a candidate costs the complexity of the terms it keeps, not of one opaque tree.
+        A term that is a combination of the others (u1*ub beside ub*(u1+u2+u3+u4) ...) is left out as in the
+        pool, and so is a front member expanding to more terms than 3 x max_terms; [] when no term is new
+        (the caller then keeps the GP candidates as they are). y: point targets (N,) of the fit rows X."""
+        base = _product_factors(best.expression)
+        shapes = list(base)
+        for extra in extras:
+            try:
+                new = [t for t in term_shapes(sympy.expand(extra)) if t != 1 and t not in shapes]
+            except (RecursionError, TypeError, ValueError):
+                continue
+            if len(shapes) + len(new) <= 3 * self.settings.max_terms:
+                shapes += new
+        if len(shapes) == len(base):
+            return []
+        cols = _lambdify(prims, shapes)(columns.primitives(X))
+        basis = _Basis(len(X))  # the picked model's features first; a GP term only where independent of them
+        usable = [j for j in range(cols.shape[1]) if np.all(np.isfinite(cols[:, j]))]
+        accepted = set(basis.add_first(cols, usable))
+        finite = np.array([j in accepted for j in range(cols.shape[1])])
+        shapes = [e for e, ok in zip(shapes, finite, strict=True) if ok]
+        fn = _lambdify(prims, shapes)
+
+        def evaluate(X_: np.ndarray, js: np.ndarray) -> np.ndarray:
+            return fn(columns.primitives(X_))[:, js]
+
+        theta, target = cols[:, finite], y
+        if self.weak is not None and self.weak[0] is not None:
+            theta, target = np.asarray(self.weak[0] @ theta), self.weak[0] @ y
+        groups = ["picked" if e in base else "operon" for e in shapes]
+        return self._sparsify(shapes, groups, theta, [str(e) for e in shapes], evaluate, target, loss, set(),
+                              engine=f"{self.name}(+operon)")
 
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
@@ -461,6 +535,12 @@ def _better(new: Candidate, old: Candidate, scale: float, margin: float = 1e-3) 
     return not np.isfinite(b) or a < b * (1.0 - margin) - 1e-9 * scale
 
 
+def _exact(c: Candidate, scale: float) -> bool:
+    """True when c's held-out loss is at rounding level (1e-9 of the held-out target's spread, as in
+    _better): no later round can be better, so none is run."""
+    return c.holdout_loss is not None and bool(c.holdout_loss <= 1e-9 * scale)
+
+
 def _standardized(F: np.ndarray) -> np.ndarray:
     """Columns centred and scaled to unit RMS; unusable columns (constant, not finite) all NaN."""
     with np.errstate(all="ignore"):
@@ -478,6 +558,30 @@ def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:
     with np.errstate(all="ignore"):
         scores = np.abs(np.nan_to_num(Z.T @ rc, nan=np.nan)) / (len(r) * (rs if rs > 0 else 1.0))
     return np.where(np.isfinite(scores), scores, -np.inf)
+
+
+def _projected_scores(Z: np.ndarray, r: np.ndarray, model: np.ndarray, floor: float = 1e-5) -> np.ndarray:
+    """|correlation| of each standardized column of Z (N,M) with the residual r (N,), both taken orthogonal
+    to the current model's columns `model` (N,k) and the constant: what each feature adds to the model
+    against what the model leaves unexplained (orthogonal matching pursuit's criterion). Plain screening
+    ranks a feature nearly collinear with a model term (wz*(u1+..+u4) beside wz when the rotor sum varies
+    by 5 %) by the part the model already explains, so the residual it would remove never brings it in.
+    -inf where a column is unusable or adds less than `floor` of its own spread (numerically in the span)."""
+    if model.shape[1] == 0:
+        return _screen_scores(Z, r)
+    basis = np.hstack([np.ones((len(r), 1)), model])
+    basis = basis[:, np.all(np.isfinite(basis), axis=0)]
+    q, rr = np.linalg.qr(basis)
+    q = q[:, np.abs(np.diag(rr)) > 1e-10 * max(float(np.abs(np.diag(rr)).max()), 1e-300)]
+    r_perp = r - q @ (q.T @ r)
+    rs = float(np.linalg.norm(r_perp))
+    with np.errstate(all="ignore"):
+        Zf = np.nan_to_num(Z, nan=0.0)
+        along = q.T @ Zf
+        perp2 = np.sum(Zf * Zf, axis=0) - np.sum(along * along, axis=0)
+        usable = np.all(np.isfinite(Z[:1]), axis=0) & (perp2 > (floor**2) * len(r))
+        scores = np.abs(r_perp @ Zf) / ((rs if rs > 0 else 1.0) * np.sqrt(np.where(usable, perp2, 1.0)))
+    return np.where(usable & np.isfinite(scores), scores, -np.inf)
 
 
 def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:

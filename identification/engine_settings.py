@@ -86,6 +86,9 @@ class DiscoverySettings:
     # |x| only where x takes both signs: the smaller side's extent at least this share of the larger
     # (identification.feature_space); otherwise |x| = +-x on nearly every row and x stands for it
     abs_sign_share: float = 0.05
+    # no feature of a positive primitive (the height) whose relative spread std/mean on the fit rows is below
+    # this: a flight at 10 +- 0.05 m cannot tell h vb^2 from vb^2 (identification.feature_space.barely_varies)
+    min_spread: float = 0.01
     rungs: int = 2  # 1: the unary features alone; 2: products/quotients of two; 3: of three (beam-grown)
     screen: int = 60  # features added to the pool per round by sure independence screening
     beam: int = 40  # rung-2 features (best screened) that are grown into rung 3

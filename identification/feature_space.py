@@ -25,7 +25,9 @@ Each primitive carries a unit as exponents of (m, s) (identification.body_frame)
 - rung 2: products of two rung-1 features ("mul"; quotients are products with the "inv" features)
 - rung 3: products of a beam of the best rung-2 features with the rung-1 features
 Invalid combinations (sin of a length, a sum of a velocity and a rate) are never built and are counted in
-`FeatureSpace.pruned`. Features are sympy expressions in the primitive names; duplicates (the same
+`FeatureSpace.pruned`; so are the features of a positive primitive (the height) that barely varies on the
+data (relative spread below `min_spread`): a product with it could not be told from its other factor alone,
+and the simpler term must win. Features are sympy expressions in the primitive names; duplicates (the same
 expression, or a constant column) are dropped. A feature's values are computed from its recipe, so the same
 space evaluates on any data (training, held-out, validation).
 """
@@ -161,11 +163,13 @@ def grow_unary(
     near_inverse_powers: int | None = None,
     near_spread: float = 1.0,
     abs_sign_share: float = 0.05,
+    min_spread: float = 0.0,
 ) -> FeatureSpace:
     """Rung 1: each primitive and the unary operators that are valid for its unit and its range in P
     (inverse_span: 1/x only where min(x) >= median(x) / inverse_span; near_inverse_powers (None: as
     inverse_powers) and the ground-plane gradients where the data reach near zero; abs_sign_share: |x| only
-    where min(-min(x), max(x)) >= abs_sign_share * max|x|; module docstring)."""
+    where min(-min(x), max(x)) >= abs_sign_share * max|x|; min_spread: no feature at all of a positive
+    primitive whose relative spread std(x)/mean(x) in P is below it; module docstring)."""
     unknown = [o for o in operators if o not in OPERATORS]
     if unknown:
         raise ValueError(f"unknown operators {unknown} (known: {', '.join(OPERATORS)})")
@@ -193,6 +197,9 @@ def grow_unary(
         x, unit, s = P[:, k], PRIMITIVES[name].unit, sym[k]
         if PRIMITIVES[name].ground_normal:
             continue  # only in the ground-plane gradients, below
+        if PRIMITIVES[name].positive and barely_varies(x, min_spread):
+            space._prune(f"{name}: barely varies on these rows (relative spread below {min_spread:g})")
+            continue
         space._add(s, unit, 1, Recipe("id", (k,)))
         if "pow" in operators:
             space._add(s**2, power_unit(unit, 2), 1, Recipe("pow2", (k,)))
@@ -232,6 +239,13 @@ def grow_unary(
         expr = sympy.sqrt(sympy.Add(*[sym[k] ** 2 for k in members]))
         space._add(expr, u, 1, Recipe("norm", tuple(members)))
     return space
+
+
+def barely_varies(x: np.ndarray, min_spread: float) -> bool:
+    """True when a positive quantity's relative spread std(x)/mean(x) is below min_spread: any term it
+    multiplies (h vb^2 at 10 +- 0.05 m) cannot be told from the term alone (vb^2), nor h from a constant."""
+    mean = float(np.mean(x)) if len(x) else 0.0
+    return bool(mean > 0 and float(np.std(x)) < min_spread * mean)
 
 
 def grow_products(space: FeatureSpace, left: Sequence[int], right: Sequence[int], rung: int) -> list[int]:

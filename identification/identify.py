@@ -177,6 +177,7 @@ def identify(
     below: dict[str, float] = {}
     not_excited: dict[str, dict[str, Any]] = {}
     warnings: list[str] = roles.notes()  # where the held-out blocks went when a flight's tail is steady
+    engine_notes: list[str] = []
     total_start = time.perf_counter()
     library = build_library(settings.sparse.groups)
     library_names = [f.name for f in library]
@@ -206,6 +207,9 @@ def identify(
         if not candidates:
             bar.close("no candidates")
             raise UserError(f"engine {engine} found no expression for {name}", hint="raise --budget")
+        new_notes = [n for n in getattr(eng, "notes", []) if n not in engine_notes]
+        engine_notes += new_notes
+        warnings += [f"note: {n}" for n in new_notes]
         candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"])
         attach_holdout(candidates, Xp[okp], yp[okp], loss, ops["pick"])
         mark_self_feedback(candidates, X[ok], y[ok], name)
@@ -326,6 +330,7 @@ def identify(
         },
         "identifiability": {
             "targets": identifiability,
+            "engine_notes": engine_notes,  # what the engine could not build features for (discovery)
             "candidate_features": {
                 "condition_number": cand.as_dict()["condition_number"],
                 "features": len(cand.terms),

@@ -136,8 +136,8 @@ def test_unknown_primitive_or_operator_is_a_user_error():
 
 
 def test_rounds_stop_once_the_pick_stops_improving_and_more_rounds_change_nothing_exact():
-    # exact data: a round or two reach the true dwz; `patience` rounds without a better held-out pick end the
-    # search (counts, not time), long before the `rounds` cap; a larger patience runs more rounds for nothing
+    # exact data: a round or two reach the true dwz; a pick exact to rounding ends the search at once (no
+    # round can be better), whatever the patience: counts, not time, long before the `rounds` cap
     truth = body_expressions(VEHICLE, Effects())["dwz"]
     picks, rounds = [], []
     for patience in (1, 8):
@@ -145,6 +145,23 @@ def test_rounds_stop_once_the_pick_stops_improving_and_more_rounds_change_nothin
         best, engine, _, _ = _fit(Effects(), "dwz", seed=4, n=800, settings=settings, budget=0)
         _assert_same_terms(best.expression, truth)
         picks.append(str(best.expression))
+        rounds.append(engine.stats["rounds"])
+    assert rounds[0] <= 3 and rounds[1] == rounds[0]
+    assert picks[0] == picks[1]
+
+
+def test_patience_rounds_without_a_better_pick_end_the_search_on_noisy_data():
+    # with noise no pick is exact: `patience` rounds in a row without a better held-out pick end the search,
+    # and a larger patience runs more rounds (here for nothing: the same model)
+    xi, u, ned = flight_rows(800, 4, VEHICLE, Effects())
+    y = body_targets(xi, ned, GRAVITY)[:, BODY_TARGET_NAMES.index("dwz")]
+    y = y + np.random.default_rng(4).normal(0.0, 0.01 * np.std(y), len(y))
+    Xt, yt, Xh, yh = split_holdout(np.hstack([xi, u]), y)
+    rounds, picks = [], []
+    for patience in (1, 8):
+        engine = DiscoveryEngine(DiscoverySettings(rounds=8, patience=patience, screen=20))
+        cands = engine.fit(Xt, yt, "dwz", 0, 4, "absolute", None, (Xh, yh))
+        picks.append(str(select(cands, SelectionSettings(), float(np.std(yh))).expression))
         rounds.append(engine.stats["rounds"])
     assert rounds[0] <= 3 and rounds[1] > rounds[0]
     assert picks[0] == picks[1]
