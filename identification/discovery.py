@@ -41,8 +41,11 @@ from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
 from identification.model_file import ExpressionError, complexity, parse_expression
 from identification.pareto import attach_holdout, select
+from identification.replacement import replacements
+from identification.robust_weights import huber_weights
 from identification.sparse import (
     LeastSquaresProblem,
+    fitted_identification,
     single_threaded_blas,
     sparse_active_sets,
     sparse_expression,
@@ -116,6 +119,7 @@ class DiscoveryEngine:
         self.weak: tuple[Any, Any] | None = None
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
+        self._terms: dict[int, list[int]] = {}  # id of a sparse candidate -> its features (space indices)
 
     def build_space(self, X: np.ndarray) -> FeatureSpace:
         """The grown feature space for training data X (N,16): rungs 1 and 2 (rung 3 is grown in fit)."""
@@ -164,6 +168,7 @@ class DiscoveryEngine:
     ) -> list[Candidate]:
         s = self.settings
         start = time.perf_counter()
+        self._terms = {}
         key = (s, hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest())
         if s.rungs < 3 and _LAST_SPACE.get("key") == key:  # the six targets of one flight share it
             space, F, Z = _LAST_SPACE["space"], _LAST_SPACE["F"], _LAST_SPACE["Z"]
@@ -199,25 +204,30 @@ class DiscoveryEngine:
         candidates: list[Candidate] = []
         seen: set[frozenset[int]] = set()
         residual = y.copy()
+        weights: np.ndarray | None = None  # Huber row weights from the last round's model (absolute loss)
+        swaps: list[int] = []  # features that would replace a term of the last round's model (replacement)
         best: Candidate | None = None
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
         for rnd in range(max(s.rounds, 1)):
-            scores = _screen_scores(Z, residual)
+            scores = _screen_scores(Z, residual if weights is None else weights * residual)
             scores[pool] = -np.inf
-            new: list[int] = []
+            new: list[int] = [i for i in swaps if basis.add(F[:, i])]  # replacement screening first
             for i in np.argsort(-scores, kind="stable"):
-                if len(new) >= s.screen or not np.isfinite(scores[i]):
+                if len(new) >= s.screen + len(swaps) or not np.isfinite(scores[i]):
                     break
                 if basis.add(F[:, i]):
                     new.append(int(i))
             if not new:
                 break
             pool += new
-            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen)
+            round_cands = self._sparsify(space, columns, F[:, pool], np.asarray(pool), y, loss, seen, weights)
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
             residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
+            if loss == "absolute":  # the few rows with large target errors do not choose the terms
+                weights = huber_weights(residual)
+            swaps = replacements(F, Z, y, self._terms.get(id(best), []), pool, weights)
             if progress:
                 progress(0.7 * (rnd + 1) / max(s.rounds, 1), f"round {rnd + 1}: pool {len(pool)}")
             stale = stale + 1 if previous is not None and not _better(best, previous, scale) else 0
@@ -251,11 +261,12 @@ class DiscoveryEngine:
         y: np.ndarray,
         loss: str,
         seen: set[frozenset[int]],
+        weights: np.ndarray | None = None,
     ) -> list[Candidate]:
         """Every new active set of the sparse paths over (1, pool features) as a candidate (seen: sets so far,
-        as feature indices with -1 for the constant)."""
+        as feature indices with -1 for the constant; weights: the paths' row weights, robust_weights)."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
-        problem = LeastSquaresProblem(theta, y)
+        problem = LeastSquaresProblem(theta, y, weights)
         exprs = [sympy.Integer(1)] + [space.expressions[i] for i in pool]
         feats = [Feature(f"x{k}", e, "const" if k == 0 else f"rung{space.rungs[pool[k - 1]]}")
                  for k, e in enumerate(exprs)]
@@ -272,7 +283,8 @@ class DiscoveryEngine:
             seen.add(key)
             coef = problem.solve(active)
             r = y - theta @ coef
-            by_size.setdefault(int(active.sum()), []).append((float(r @ r), k, coef))
+            rss = float(r @ r) if weights is None else float((weights * r) @ r)
+            by_size.setdefault(int(active.sum()), []).append((rss, k, coef))
         kept = [e for size in sorted(by_size) for e in sorted(by_size[size], key=lambda e: e[:2])[:_KEEP]]
         out: list[Candidate] = []
         for _, k, coef in kept:
@@ -297,7 +309,10 @@ class DiscoveryEngine:
                     predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
                 )
             )
-            out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
+            # the t ratios of the fit the candidate is: least absolute error for loss 'absolute'
+            out[-1].weakest_t, out[-1].largest_vif = term_identification(
+                theta[:, idx], y, c, robust=loss == "absolute")
+            self._terms[id(out[-1])] = [int(i) for i in fidx]
         return out
 
     def _operon(
@@ -377,12 +392,18 @@ class DiscoveryEngine:
             )
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
             if shapes:
-                out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
+                out[-1].weakest_t, out[-1].largest_vif = fitted_identification(
+                    _lambdify(prims, shapes)(P), y, loss)
         return out
 
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
-_SELECTION = SelectionSettings()  # the residual's model: the same held-out pick as identify's
+# the residual's model between rounds: identify's held-out pick without its identification rules (t ratio,
+# VIF). A round's models are incomplete: their residual is the physics still to find, smooth, so its
+# effective sample size is tens of rows and every t ratio is small (the rule set aside all but 2 of the
+# first round's 42 candidates of fang-chen-aero's dwx and kept the screening on a 2-term model); the rules
+# are for the final pick (identify), which sees every round's candidates.
+_SELECTION = dataclasses.replace(SelectionSettings(), min_t=0.0, max_vif=float("inf"))
 _KEEP = 3  # candidates kept per model size (number of terms): the best by training residual
 
 
