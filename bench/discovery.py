@@ -36,8 +36,8 @@ no-ground expressions. Flights from the ground lose the rows within the segmenta
 lift-off, as identification.segmentation drops them from real logs (there h -> 0, below the SITL's
 min_height, where no law in 1/h holds).
 Every engine's model is written to OUT/models/<case>-<engine>.yaml. A true term that
-the training flight cannot pin down even given the true structure (the least-absolute-error fit on every
-true term, robust t ratio below selection.min_t = 5, the t the engine's own pick demands;
+the training flight cannot pin down even given the true structure
+(least squares on every true term, t ratio below selection.min_t = 5, the t the engine's own pick demands;
 unidentifiable_terms) is counted apart ("not identifiable"): not missing when left out, not held to the
 coefficient floor; ours lists the ones it left out. With realistic sensors these are the terms below the
 noise (on fang-chen-aero: the per-rotor u_i*w terms of fx/fy, the w^2 terms of fz, the rate damping); with
@@ -99,7 +99,6 @@ from identification.model_file import (  # noqa: E402
     save_model,
 )
 from identification.segmentation import SegmentationSettings  # noqa: E402
-from identification.sparse import LeastSquaresProblem  # noqa: E402
 from identification.true_model import motor_combinations_sym, true_body_expressions, true_model  # noqa: E402
 from identification.validate import (  # noqa: E402
     compare_expressions,
@@ -353,10 +352,9 @@ class Row:
 def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, gravity: float,
                          weak: bool, min_t: float = SelectionSettings().min_t) -> dict[str, list[str]]:
     """Per body-frame target, the true terms this training flight cannot pin down even given the true
-    structure: the fit of the target (weak: integrated against the test functions, as the engine sees it)
-    on every true term and a constant, for the least absolute error as the engine's default loss, and the
-    terms whose t ratio (identification.collinearity, robust scale, AR(1)-corrected) is below min_t, the t
-    the engine's pick demands of its own terms. Those terms are
+    structure: least squares of the target (weak: integrated against the test functions, as the engine
+    sees it) on every true term and a constant, and the terms whose t ratio (identification.collinearity,
+    AR(1)-corrected) is below min_t, the t the engine's pick demands of its own terms. Those terms are
     listed apart and neither counted missing nor held to the coefficient floor."""
     X = np.hstack([train.xi, train.u])
     names = tuple(PRIMITIVES)
@@ -377,10 +375,7 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
         if weak:
             op = weak_rows(train.t[ok], train.flight[ok], WeakSettings())
             cols, y = np.asarray(op @ cols), op @ y
-        problem = LeastSquaresProblem(cols, y)  # fitted as the engine fits: least absolute error
-        active = np.ones(cols.shape[1], dtype=bool)
-        coef = problem.l1_refit(active, problem.solve(active), 10)
-        t, _ = term_t_ratios(cols, y, coef, robust=True)
+        t, _ = term_t_ratios(cols, y)
         if t is None:
             continue
         out[target] = [expression_to_string(k) for k, tk in zip(terms, t[1:], strict=True)

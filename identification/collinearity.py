@@ -230,15 +230,12 @@ def weakest_t(columns: np.ndarray, y: np.ndarray) -> float:
     return term_identification(columns, y)[0]
 
 
-def term_identification(
-    columns: np.ndarray, y: np.ndarray, coef: np.ndarray | None = None, robust: bool = False
-) -> tuple[float, float]:
+def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """(the smallest t ratio |c_j| / se_j, the largest VIF) over a linear model's non-constant terms.
 
     columns (N,k): the model's term columns (a constant column is fitted but not measured), y (N,): the
-    target; c the least-squares coefficients (or `coef`, the model's own, in the columns' units),
-    se_j = s sqrt(VIF_j) / (sqrt(N_eff) std_j) the standard error (s the residual's RMS; robust: the least
-    absolute error's scale, robust_scale). Rows of a flight are not independent: the residual of one sample
+    target; c the least-squares coefficients, se_j = s sqrt(VIF_j) / (sqrt(N_eff) std_j) the least-squares
+    standard error (s the residual's RMS). Rows of a flight are not independent: the residual of one sample
     is close to the next one's, so N_eff = N (1 - rho) / (1 + rho), rho the residual's lag-1
     autocorrelation (an AR(1) residual's effective sample size), not N. A term whose coefficient cannot be
     told from zero given its collinearity with the others and what the model leaves unexplained has a small
@@ -246,8 +243,12 @@ def term_identification(
     targets' errors; noise-free data gives t ~1e9. t is 0 when there are fewer rows than columns, inf for a
     model without a varying term. The VIF says how far the flight separates the terms at all: on noise-free
     closed-loop data a signed rotor combination written as three tied terms has t ~1e9 and VIF ~100.
+    The RMS, not a robust scale: an absolute-error fit's standard error (Koenker's tau from the median
+    absolute deviation) let terms fitting the targets' small systematic errors through (a 16 s closed-loop
+    flight's fz took h*wz, h^2|wz|, wz|v| at t 7.5; with the RMS the true structure), so the rule stays
+    conservative where a few rows carry large errors (fang-chen-aero's dwy wx^2: t 3.0).
     """
-    t, vif = term_t_ratios(columns, y, coef, robust)
+    t, vif = term_t_ratios(columns, y)
     if t is None:
         return 0.0, float("inf")
     measured = np.isfinite(vif)
@@ -256,18 +257,11 @@ def term_identification(
     return float(t[measured].min()), float(vif[measured].max())
 
 
-def term_t_ratios(
-    columns: np.ndarray, y: np.ndarray, coef: np.ndarray | None = None, robust: bool = False
-) -> tuple[np.ndarray | None, np.ndarray]:
-    """(t ratio |c_j| / se_j, VIF_j) of each column (k,) of the fit of y (N,) on columns (N,k), with the
-    effective sample size of term_identification; (None, [inf]) when there are fewer rows than columns.
-    coef (k,): the fit's coefficients (None: least squares). robust: the fit is a least-absolute-error one
-    (loss 'absolute'), whose standard error scales with robust_scale of its residual, not the RMS: target
-    errors concentrated on a few rows (a flight's command kinks: RMS 50x the typical residual on
-    paper-train) inflate the RMS and hide terms the absolute-error fit pins down to 1 %; the AR(1) rho is
-    then that of the residual clipped at 3 robust standard deviations, the rows that make the scale.
-    A column that does not vary (a constant) is fitted but gets NaN for both; t is inf for every column of
-    an exact fit with a nonzero coefficient, 0 where a coefficient is 0."""
+def term_t_ratios(columns: np.ndarray, y: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """(t ratio |c_j| / se_j, VIF_j) of each column (k,) of the least-squares fit of y (N,) on columns (N,k),
+    with the effective sample size of term_identification; (None, [inf]) when there are fewer rows than
+    columns. A column that does not vary (a constant) is fitted but gets NaN for both; t is inf for every
+    column of an exact fit with a nonzero coefficient, 0 where a coefficient is 0."""
     a = np.asarray(columns, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
@@ -281,14 +275,9 @@ def term_t_ratios(
         return full_t, full_vif
     scale = np.where(measured, std, np.maximum(np.abs(a).max(axis=0), 1e-300))
     z = a / scale  # unit spread (measured columns): least squares well scaled whatever the terms' units
-    c = np.linalg.lstsq(z, y, rcond=None)[0] if coef is None else np.asarray(coef, dtype=float) * scale
+    c = np.linalg.lstsq(z, y, rcond=None)[0]
     resid = y - z @ c
-    if robust:
-        s = robust_scale(resid)
-        sigma = robust_sigma(resid)
-        resid = np.clip(resid - float(np.median(resid)), -3.0 * sigma, 3.0 * sigma)
-    else:
-        s = float(np.sqrt(np.mean(resid * resid)))
+    s = float(np.sqrt(np.mean(resid * resid)))
     vif = np.array([t.vif for t in column_collinearity(a, [str(j) for j in range(a.shape[1])]).terms])
     c = np.abs(c[measured])
     full_vif[measured] = vif
@@ -300,19 +289,6 @@ def term_t_ratios(
         t = c / (s * np.sqrt(vif) / np.sqrt(n_eff))
     full_t[measured] = np.nan_to_num(t, nan=0.0)
     return full_t, full_vif
-
-
-# sqrt(pi / 2): a least-absolute-error coefficient's standard error over the least-squares one's for
-# normal errors (the scale tau = 1 / (2 f(0)) of the residual density f at 0, sigma sqrt(pi / 2))
-_LAD_EFFICIENCY = float(np.sqrt(np.pi / 2.0))
-
-
-def robust_scale(resid: np.ndarray) -> float:
-    """The scale tau of a least-absolute-error fit's residual (N,), in its unit: its coefficients' standard
-    errors are tau (X^T X)^-1/2 (Koenker 2005, tau = 1 / (2 f(0))); taken as sqrt(pi/2) x robust_sigma,
-    exact for normal errors, and set by the typical rows, not by a few large ones (the residual's density
-    at 0 is what pins the coefficients)."""
-    return _LAD_EFFICIENCY * robust_sigma(resid)
 
 
 def robust_sigma(resid: np.ndarray) -> float:

@@ -45,7 +45,6 @@ from identification.replacement import replacements
 from identification.robust_weights import huber_weights
 from identification.sparse import (
     LeastSquaresProblem,
-    fitted_identification,
     single_threaded_blas,
     sparse_active_sets,
     sparse_expression,
@@ -309,9 +308,7 @@ class DiscoveryEngine:
                     predict=lambda X_, f=fidx, cf=cf, k=const: columns(X_, f) @ cf + k,
                 )
             )
-            # the t ratios of the fit the candidate is: least absolute error for loss 'absolute'
-            out[-1].weakest_t, out[-1].largest_vif = term_identification(
-                theta[:, idx], y, c, robust=loss == "absolute")
+            out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
             self._terms[id(out[-1])] = [int(i) for i in fidx]
         return out
 
@@ -392,8 +389,7 @@ class DiscoveryEngine:
             )
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
             if shapes:
-                out[-1].weakest_t, out[-1].largest_vif = fitted_identification(
-                    _lambdify(prims, shapes)(P), y, loss)
+                out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
         return out
 
 

@@ -93,7 +93,7 @@ def fit_terms(
         return expression_columns(exprs, X_) @ coef
 
     c = Candidate(expr, complexity(expr), loss_fn(b, a @ coef, loss), ENGINE_NAME, predict=predict)
-    c.weakest_t, c.largest_vif = term_identification(a, b, coef, robust=loss == "absolute")
+    c.weakest_t, c.largest_vif = term_identification(a, b)
     return c
 
 

@@ -18,7 +18,6 @@ import scipy.linalg
 import sympy
 
 from identification.candidate import Candidate, Progress
-from identification.collinearity import term_identification
 from identification.engine_settings import SparseSettings
 from identification.library import Feature, build_library, compile_features
 from identification.metrics import LOSSES
@@ -171,24 +170,6 @@ class LeastSquaresProblem:
         out = np.zeros_like(coef)
         out[idx] = best_x / self.size[idx]
         return out
-
-
-def fitted_identification(
-    columns: np.ndarray, y: np.ndarray, loss: str, iterations: int = 10
-) -> tuple[float, float]:
-    """(weakest t, largest VIF) of the terms columns (N,k) fitted to y (N,) as the engines fit them: least
-    squares, refit for the least absolute error (IRLS) for loss 'absolute', whose t ratios then use the
-    robust scale (identification.collinearity.term_identification)."""
-    ok = np.all(np.isfinite(columns), axis=1) & np.isfinite(y)
-    a, b = np.asarray(columns, dtype=float)[ok], np.asarray(y, dtype=float)[ok]
-    if len(b) <= a.shape[1]:
-        return term_identification(a, b)
-    problem = LeastSquaresProblem(a, b)
-    active = np.ones(a.shape[1], dtype=bool)
-    coef = problem.solve(active)
-    if loss == "absolute":
-        coef = problem.l1_refit(active, coef, iterations)
-    return term_identification(a, b, coef, robust=loss == "absolute")
 
 
 def _weighted_solve(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
