@@ -32,10 +32,11 @@ class LeastSquaresProblem:
     solve afterwards is a p x |A| problem, independent of the number of samples.
     """
 
-    def __init__(self, theta: np.ndarray, y: np.ndarray):
+    def __init__(self, theta: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None):
+        """weights (N,) >= 0: row weights of every least-squares solve and path (identification.
+        robust_weights); the absolute-error refit (l1_refit) and the scales stay those of the plain rows."""
         self.theta = theta
         self.y = y
-        self.y_mean = float(np.mean(y))
         self.y_std = float(np.std(y)) or float(np.sqrt(np.mean(y * y))) or 1.0
         std = theta.std(axis=0)
         rms = np.sqrt(np.mean(theta * theta, axis=0))
@@ -43,19 +44,22 @@ class LeastSquaresProblem:
         size = np.where(self.is_const, rms, std)
         self.usable = size > 0
         self.size = np.where(self.usable, size, 1.0)
-        self.mean = theta.mean(axis=0)
+        w = None if weights is None else np.asarray(weights, dtype=float)
+        self.y_mean = float(np.average(y, weights=w))
+        self.mean = np.average(theta, axis=0, weights=w)
         scaled = theta / self.size
         self.scaled = scaled
-        self._r_u, self._z_u = self._reduce(scaled, y)
-        self._y2 = float(y @ y)
-        self._y_c2 = float(((y - self.y_mean) ** 2).sum())
+        sw = np.ones(len(y)) if w is None else np.sqrt(w)
+        self._r_u, self._z_u = self._reduce(scaled * sw[:, None], y * sw)
+        self._y2 = float((y * sw) @ (y * sw))
+        self._y_c2 = float((((y - self.y_mean) * sw) ** 2).sum())
         consts = np.flatnonzero(self.is_const & self.usable)
         self.const_col = int(consts[0]) if consts.size == 1 else None
         if self.const_col is not None:
             # centred columns: far better conditioned when features have large means (f1 ~ 1e6)
-            centred = scaled - scaled.mean(axis=0)
+            centred = (scaled - self.mean / self.size) * sw[:, None]
             centred[:, self.const_col] = 0.0
-            self._r_c, self._z_c = self._reduce(centred, y - self.y_mean)
+            self._r_c, self._z_c = self._reduce(centred, (y - self.y_mean) * sw)
 
     @staticmethod
     def _reduce(a: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

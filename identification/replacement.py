@@ -1,0 +1,66 @@
+"""Replacement screening: for each term of a model, the feature that would serve better in its place.
+
+Sure independence screening ranks features by their correlation with the residual, so it only finds what
+the model lacks. A term already in the model that stands for a near-collinear, truer one is never
+challenged: rung-1 features are always in the pool, so `wy` enters first where the physics is
+wy (u1 + u2 + u3 + u4) (the rotor sum nearly constant), and the screening then fits what is left,
+wy (sum - its mean), with wrong terms (on `fang-chen-aero`'s fz: wy, wy u_i^2; the true structure was 30 %
+better on the pick rows). This is the replacement step of stepwise regression (Miller 2002, sequential
+replacement): for each term j of the model, among the features most correlated with it, the one that
+lowers the (row-weighted) residual sum of squares most when it takes j's place, kept when it does better
+than j itself. The engine adds those to its pool; the sparse paths and the pick on held-out rows decide.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def replacements(
+    F: np.ndarray,
+    Z: np.ndarray,
+    y: np.ndarray,
+    terms: Sequence[int],
+    exclude: Sequence[int],
+    weights: np.ndarray | None = None,
+    nearest: int = 40,
+) -> list[int]:
+    """Column indices of F (N,M) that fit y (N,) better than a term of the model in its place (module
+    docstring). terms: the model's columns of F (its constant implied); exclude: columns not to propose (the
+    pool); Z: F standardised (identification.discovery._standardized, NaN where unusable); weights (N,): row
+    weights of the sums of squares; nearest: how many of the features most correlated with a term are tried.
+    """
+    terms = [int(j) for j in terms]
+    if not terms:
+        return []
+    sw = np.ones(len(y)) if weights is None else np.sqrt(np.asarray(weights, dtype=float))
+    blocked = np.zeros(F.shape[1], dtype=bool)
+    blocked[np.asarray(list(exclude), dtype=int)] = True
+    blocked[terms] = True
+    out: list[int] = []
+    yw = y * sw
+    for j in terms:
+        zj = Z[:, j]
+        if not np.all(np.isfinite(zj)):
+            continue
+        with np.errstate(all="ignore"):
+            corr = np.abs(np.nan_to_num(Z.T @ zj, nan=0.0)) / len(zj)
+        corr[blocked] = -1.0
+        near = [int(k) for k in np.argsort(-corr, kind="stable")[:nearest] if corr[k] > 0.0]
+        if not near:
+            continue
+        base = np.hstack([np.ones((len(y), 1)), F[:, [k for k in terms if k != j]]]) * sw[:, None]
+        q = np.linalg.qr(base, mode="reduced")[0]
+        r = yw - q @ (q.T @ yw)
+        cols = F[:, [j, *near]] * sw[:, None]
+        cols = cols - q @ (q.T @ cols)
+        den = np.sum(cols * cols, axis=0)
+        with np.errstate(all="ignore"):
+            gain = np.where(den > 1e-12 * np.maximum(np.sum(F[:, [j, *near]] ** 2, axis=0), 1e-300),
+                            (r @ cols) ** 2 / den, 0.0)
+        k = int(np.argmax(gain[1:]))
+        if gain[1 + k] > gain[0] and near[k] not in out:
+            out.append(near[k])
+    return out
