@@ -39,6 +39,8 @@ HEADER_LEN_V1 = 6
 MIN_FRAME_V2 = HEADER_LEN_V2 + 2  # empty payload never occurs, but the header+crc is the floor
 
 _HEADER_V2 = struct.Struct("<BBBBBBBHB")
+# what the splitter reads of a v2 header: length, incompat flags, system, component, message id (16 + 8 bits)
+_SPLIT_V2 = struct.Struct("<xBBxxBBHB")
 _CRC = struct.Struct("<H")
 _Header = mavlink.MAVLink_header
 # the CRC'd header after the start byte: length, incompat and compat flags, seq, system, component, message id
@@ -411,6 +413,7 @@ def _split(
     specs = SPECS_BY_ID
     extras = _EXTRA_BYTES
     crc16 = _mcrf4xx
+    head_v2 = _SPLIT_V2.unpack_from
     while i < n:
         stx = data[i]
         if stx != STX_V2 and stx != STX_V1:
@@ -432,7 +435,7 @@ def _split(
                 stats.garbage_bytes += 1
                 i += 1
                 continue
-            incompat = data[i + 2]
+            length, incompat, system_id, component_id, id_low, id_high = head_v2(data, i)
             if incompat & ~IFLAG_SIGNED:
                 if not resync:
                     stats.garbage += 1
@@ -442,9 +445,7 @@ def _split(
                 continue
             signature_len = SIGNATURE_LEN if incompat & IFLAG_SIGNED else 0
             header_len = HEADER_LEN_V2
-            msg_id = data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16)
-            system_id = data[i + 5]
-            component_id = data[i + 6]
+            msg_id = id_low | (id_high << 16)
         else:
             if n - i < HEADER_LEN_V1 + 2:
                 if stream:
@@ -457,10 +458,11 @@ def _split(
                 continue
             signature_len = 0
             header_len = HEADER_LEN_V1
+            length = data[i + 1]
             msg_id = data[i + 5]
             system_id = data[i + 3]
             component_id = data[i + 4]
-        crc_end = i + header_len + data[i + 1]
+        crc_end = i + header_len + length
         frame_end = crc_end + 2 + signature_len
         if frame_end > n:
             if stream:
