@@ -215,7 +215,9 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float, gravity: flo
     flights = ((case.profiles[0], duration, seed, "train"), (case.profiles[1], None, val_seed, "validate"))
     logs, tlogs = [], []
     for profile, dur, s, role in flights:
-        tlog = out / f"{case.sitl_vehicle}-{case.sensors}-{role}-{dur or 0:g}s-seed{s}.tlog"
+        # the profile in the name: two cases of one vehicle (paper flights, closed loop) share an --out folder
+        name = f"{case.sitl_vehicle}-{Path(str(profile)).stem}-{case.sensors}-{role}-{dur or 0:g}s-seed{s}"
+        tlog = out / f"{name}.tlog"
         tlogs.append(tlog)
         if reuse and tlog.exists() and tlog.stat().st_size > 0:
             logs.append(load_dataset(tlog, targets=case.targets, gravity=gravity))
@@ -223,7 +225,7 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float, gravity: flo
         # step_timeout as the SITL's own patience (--lockstep-timeout 30): a loaded machine stalls steps for
         # over 1 s (a frame-drag flight was lost at 34.7 s with load 16 on 2 cores)
         fly_excitation(profile, tlog, sitl_args=args, seed=s, duration=dur, vehicle=str(path),
-                       step_timeout=30.0, log_path=out / f"sitl-{case.sitl_vehicle}-{role}.log")
+                       step_timeout=30.0, log_path=out / f"sitl-{tlog.stem}.log")
         logs.append(load_dataset(tlog, targets=case.targets, gravity=gravity))
     if not case.open_loop:
         logs = [without_lift_off(d) for d in logs]
