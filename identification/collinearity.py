@@ -295,15 +295,6 @@ def term_t_ratios(columns: np.ndarray, y: np.ndarray) -> tuple[np.ndarray | None
     return full_t, full_vif
 
 
-def robust_sigma(resid: np.ndarray) -> float:
-    """The residual's (N,) robust standard deviation: 1.4826 x its median absolute deviation (the standard
-    deviation for normal errors; a few large rows do not move it); 0 for no rows."""
-    r = np.asarray(resid, dtype=float)
-    if r.size == 0:
-        return 0.0
-    return 1.4826 * float(np.median(np.abs(r - np.median(r))))
-
-
 def describe(target: str, c: Collinearity) -> list[str]:
     """Terminal lines: which terms of a target are not identifiable from this flight and what would help."""
     bad = c.unidentifiable

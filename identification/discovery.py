@@ -420,8 +420,7 @@ class DiscoveryEngine:
             )
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
             if shapes:
-                out[-1].weakest_t, out[-1].largest_vif = term_identification(
-                    _lambdify(prims, shapes)(columns.primitives(X)), y)
+                out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
             extras.append(extra)
         return self._refit_expanded(best, extras, prims, columns, X, y, loss) or out
 
@@ -455,8 +454,7 @@ class DiscoveryEngine:
             return []
         cols = _lambdify(prims, shapes)(columns.primitives(X))
         basis = _Basis(len(X))  # the picked model's features first; a GP term only where independent of them
-        usable = [j for j in range(cols.shape[1]) if np.all(np.isfinite(cols[:, j]))]
-        accepted = set(basis.add_first(cols, usable))
+        accepted = set(basis.add_first(cols, range(cols.shape[1])))  # never one with a NaN or inf value
         finite = np.array([j in accepted for j in range(cols.shape[1])])
         shapes = [e for e, ok in zip(shapes, finite, strict=True) if ok]
         fn = _lambdify(prims, shapes)

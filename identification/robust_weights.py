@@ -15,9 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from identification.collinearity import robust_sigma
-
 HUBER_K = 1.345  # Huber's tuning constant: 95 % efficiency at the normal distribution
+
+
+def robust_sigma(resid: np.ndarray) -> float:
+    """The residual's (N,) robust standard deviation: 1.4826 x its median absolute deviation (the standard
+    deviation for normal errors; a few large rows do not move it); 0 for no rows."""
+    r = np.asarray(resid, dtype=float)
+    if r.size == 0:
+        return 0.0
+    return 1.4826 * float(np.median(np.abs(r - np.median(r))))
 
 
 def huber_weights(resid: np.ndarray, k: float = HUBER_K) -> np.ndarray | None:

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.signal import savgol_coeffs
 
 from bridge.rotations import rotation_matrix
+from identification.robust_weights import robust_sigma
 
 STANDARD_GRAVITY = 9.80665  # m/s^2, what PX4 and ArduPilot use
 
@@ -242,7 +243,7 @@ def white_noise_std(y: np.ndarray) -> float:
     d3 = d3[np.isfinite(d3)]
     if len(d3) < 10:
         return 0.0
-    return float(1.4826 * np.median(np.abs(d3 - np.median(d3))) / np.sqrt(20.0))
+    return robust_sigma(d3) / float(np.sqrt(20.0))
 
 
 def _savgol_1d(y: np.ndarray, coeffs: np.ndarray) -> np.ndarray:

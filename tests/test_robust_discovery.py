@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from identification.collinearity import robust_sigma
 from identification.discovery import _standardized
 from identification.replacement import replacements
-from identification.robust_weights import HUBER_K, huber_weights
+from identification.robust_weights import HUBER_K, huber_weights, robust_sigma
 from identification.sparse import LeastSquaresProblem
 
 
