@@ -106,7 +106,7 @@ from identification.validate import (  # noqa: E402
     evaluate_model,
     expression_terms,
 )
-from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, weak_rows  # noqa: E402
+from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, overlap_lag, weak_rows  # noqa: E402
 
 ENGINES = ("discovery", "sparse", "pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
 BASELINES = ("pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
@@ -356,7 +356,8 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
     """Per body-frame target, the true terms this training flight cannot pin down even given the true
     structure: least squares of the target (weak: integrated against the test functions, as the engine
     sees it) on every true term and a constant, and the terms whose t ratio (identification.collinearity,
-    AR(1)-corrected) is below min_t, the t the engine's pick demands of its own terms. Those terms are
+    its effective rows AR(1) on point rows, summed over the test functions' overlap on weak rows:
+    effective_rows) is below min_t, the t the engine's pick demands of its own terms. Those terms are
     listed apart and neither counted missing nor held to the coefficient floor."""
     X = np.hstack([train.xi, train.u])
     names = tuple(PRIMITIVES)
@@ -374,10 +375,11 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
         y = Y[:, j]
         ok = np.all(np.isfinite(cols), axis=1) & np.isfinite(y)
         cols, y = np.hstack([np.ones((int(ok.sum()), 1)), cols[ok]]), y[ok]
+        lag = None  # point rows: AR(1); weak rows: the windows' overlap (collinearity.effective_rows)
         if weak:
             op = weak_rows(train.t[ok], train.flight[ok], WeakSettings())
-            cols, y = np.asarray(op @ cols), op @ y
-        t, _ = term_t_ratios(cols, y)
+            cols, y, lag = np.asarray(op @ cols), op @ y, overlap_lag(op)
+        t, _ = term_t_ratios(cols, y, lag)
         if t is None:
             continue
         out[target] = [expression_to_string(k) for k, tk in zip(terms, t[1:], strict=True)

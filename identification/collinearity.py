@@ -228,12 +228,14 @@ def _confounders(
     return tuple(worst[j] for j in sorted(worst))
 
 
-def weakest_t(columns: np.ndarray, y: np.ndarray) -> float:
+def weakest_t(columns: np.ndarray, y: np.ndarray, max_lag: int | None = None) -> float:
     """The smallest t ratio |c_j| / se_j over a linear model's non-constant terms (term_identification)."""
-    return term_identification(columns, y)[0]
+    return term_identification(columns, y, max_lag)[0]
 
 
-def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+def term_identification(
+    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None
+) -> tuple[float, float]:
     """(the smallest t ratio |c_j| / se_j, the largest VIF) over a linear model's non-constant terms.
 
     columns (N,k): the model's term columns (a constant column is fitted but not measured), y (N,): the
@@ -250,8 +252,10 @@ def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, floa
     absolute deviation) let terms fitting the targets' small systematic errors through (a 16 s closed-loop
     flight's fz took h*wz, h^2|wz|, wz|v| at t 7.5; with the RMS the true structure), so the rule stays
     conservative where a few rows carry large errors (fang-chen-aero's dwy wx^2: t 3.0).
+    Weak-form rows (columns and y integrated against overlapping test functions) give max_lag, the
+    windows' overlap in rows (weak_form.overlap_lag), for their effective sample size (effective_rows).
     """
-    t, vif = term_t_ratios(columns, y)
+    t, vif = term_t_ratios(columns, y, max_lag)
     if t is None:
         return 0.0, float("inf")
     measured = np.isfinite(vif)
@@ -260,11 +264,14 @@ def term_identification(columns: np.ndarray, y: np.ndarray) -> tuple[float, floa
     return float(t[measured].min()), float(vif[measured].max())
 
 
-def term_t_ratios(columns: np.ndarray, y: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+def term_t_ratios(
+    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None
+) -> tuple[np.ndarray | None, np.ndarray]:
     """(t ratio |c_j| / se_j, VIF_j) of each column (k,) of the least-squares fit of y (N,) on columns (N,k),
-    with the effective sample size of term_identification; (None, [inf]) when there are fewer rows than
-    columns. A column that does not vary (a constant) is fitted but gets NaN for both; t is inf for every
-    column of an exact fit with a nonzero coefficient, 0 where a coefficient is 0."""
+    with the effective sample size of term_identification (max_lag: weak-form rows, effective_rows);
+    (None, [inf]) when there are fewer rows than columns. A column that does not vary (a constant) is
+    fitted but gets NaN for both; t is inf for every column of an exact fit with a nonzero coefficient, 0
+    where a coefficient is 0."""
     a = np.asarray(columns, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
@@ -288,7 +295,7 @@ def term_t_ratios(columns: np.ndarray, y: np.ndarray) -> tuple[np.ndarray | None
     if s == 0.0:
         full_t[measured] = np.where(c > 0, np.inf, 0.0)
         return full_t, full_vif
-    n_eff = effective_rows(resid)
+    n_eff = effective_rows(resid, max_lag)
     with np.errstate(all="ignore"):
         t = c / (s * np.sqrt(vif) / np.sqrt(n_eff))
     full_t[measured] = np.nan_to_num(t, nan=0.0)
@@ -316,13 +323,27 @@ def describe(target: str, c: Collinearity) -> list[str]:
     return lines
 
 
-def effective_rows(resid: np.ndarray) -> float:
-    """The effective number of independent rows of a flight's residual (N,): N (1 - rho) / (1 + rho), rho
-    its lag-1 autocorrelation (an AR(1) residual's effective sample size; term_identification), at least 1."""
+def effective_rows(resid: np.ndarray, max_lag: int | None = None) -> float:
+    """The effective number of independent rows of a residual (N,), between 1 and N.
+
+    max_lag None (a flight's rows): N (1 - rho) / (1 + rho), rho the lag-1 autocorrelation (an AR(1)
+    residual's effective sample size; term_identification). max_lag q (weak-form rows, whose test-function
+    windows overlap up to q rows apart: weak_form.overlap_lag): N / (1 + 2 sum_{l=1..q} rho_l), the sample
+    autocorrelations summed up to q (Hansen and Hodrick 1980: averages over overlapping windows of white
+    noise are an MA(q) process). AR(1) extrapolated from rho_1 overstates how long a window average stays
+    correlated: on 0.4 s windows every 0.02 s (q = 20) rho_1 is 0.97-0.98, AR(1) counts ~80 rows per
+    independent one where the windows give ~10, and the t ratios came out ~3x too small."""
     d = np.asarray(resid, dtype=float) - float(np.mean(resid))
+    n = len(d)
     den = float(d @ d)
-    rho = float(np.clip((d[:-1] @ d[1:]) / den, 0.0, 0.999)) if den > 0 else 0.0
-    return max(len(d) * (1.0 - rho) / (1.0 + rho), 1.0)
+    if den <= 0 or n < 2:
+        return float(max(n, 1))
+    if max_lag is None:
+        rho = float(np.clip((d[:-1] @ d[1:]) / den, 0.0, 0.999))
+        return max(n * (1.0 - rho) / (1.0 + rho), 1.0)
+    lags = range(1, min(int(max_lag), n - 1) + 1)
+    inflation = 1.0 + 2.0 * sum(float(d[:-k] @ d[k:]) / den for k in lags)
+    return float(np.clip(n / max(inflation, 1e-12), 1.0, n))
 
 
 def term_shapes(expr: sympy.Expr) -> list[sympy.Expr]:

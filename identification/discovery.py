@@ -55,6 +55,7 @@ from identification.sparse import (
     sparse_active_sets,
     sparse_expression,
 )
+from identification.weak_form import overlap_lag
 
 # Decimal places of pyoperon's infix formatter (fixed-point): 25 keeps ~17 significant digits down to 1e-8.
 _PRECISION = 25
@@ -271,6 +272,13 @@ class DiscoveryEngine:
             return loss_fn(y, pred, loss)
         return loss_fn(self.weak[0] @ y, self.weak[0] @ pred, loss)
 
+    def _weak_lag(self) -> int | None:
+        """The fit rows' test-function overlap in weak rows (weak_form.overlap_lag) when the weak form is on,
+        else None (point rows: collinearity.effective_rows' AR(1))."""
+        if self.weak is None or self.weak[0] is None:
+            return None
+        return overlap_lag(self.weak[0])
+
     def _sparsify(
         self,
         exprs: list[sympy.Expr],
@@ -293,6 +301,7 @@ class DiscoveryEngine:
         feature space (recorded per candidate for the projected and the replacement screening), when they
         are space features. weights: the paths' row weights (robust_weights)."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
+        lag = self._weak_lag()  # weak rows: the windows' overlap for the t ratios' effective rows
         problem = LeastSquaresProblem(theta, y, weights)
         exprs = [sympy.Integer(1), *exprs]
         feats = [Feature(f"x{k}", e, "const" if k == 0 else groups[k - 1]) for k, e in enumerate(exprs)]
@@ -335,7 +344,7 @@ class DiscoveryEngine:
                     predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
                 )
             )
-            out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y)
+            out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y, lag)
             if space_indices is not None:
                 self._features[id(out[-1])] = space_indices[js]
         return out

@@ -37,6 +37,7 @@ from identification.metrics import loss as loss_fn
 from identification.model_file import SYMBOLS, complexity
 from identification.sparse import LeastSquaresProblem, sparse_expression
 from identification.true_model import motor_combinations_sym
+from identification.weak_form import overlap_lag
 
 ENGINE_NAME = "physics"
 _COMB = motor_combinations_sym(SYMBOLS)
@@ -77,8 +78,10 @@ def fit_terms(
     cols = expression_columns(exprs, X)
     ok = np.all(np.isfinite(cols), axis=1) & np.isfinite(y)
     a, b = cols, np.asarray(y, dtype=float)
+    lag = None  # point rows; weak rows: the windows' overlap for the t ratios (collinearity.effective_rows)
     if operator is not None:
         a, b = operator[:, ok] @ cols[ok], operator[:, ok] @ b[ok]
+        lag = overlap_lag(operator[:, ok])
     else:
         a, b = a[ok], b[ok]
     problem = LeastSquaresProblem(a, b)
@@ -93,7 +96,7 @@ def fit_terms(
         return expression_columns(exprs, X_) @ coef
 
     c = Candidate(expr, complexity(expr), loss_fn(b, a @ coef, loss), ENGINE_NAME, predict=predict)
-    c.weakest_t, c.largest_vif = term_identification(a, b)
+    c.weakest_t, c.largest_vif = term_identification(a, b, lag)
     return c
 
 

@@ -95,3 +95,14 @@ def weak_rows(t: np.ndarray, flight: np.ndarray | None, settings: WeakSettings |
     out = sparse.csr_matrix((stacked.shape[0], len(t)))
     out = stacked @ sparse.csr_matrix((np.ones(len(t)), (np.arange(len(t)), perm)), shape=(len(t), len(t)))
     return out.tocsr()
+
+
+def overlap_lag(operator: sparse.spmatrix) -> int:
+    """The largest distance in weak rows between two test-function windows that share a sample (0 when none
+    do): weak values of white point noise are correlated up to this lag and not beyond (an MA(q) process),
+    the lag collinearity.effective_rows sums autocorrelations to for weak rows."""
+    v = sparse.csr_matrix(operator)
+    if v.shape[0] < 2 or v.nnz == 0:
+        return 0
+    shared = (abs(v) @ abs(v).T).tocoo()
+    return int(np.max(np.abs(shared.row - shared.col)))
