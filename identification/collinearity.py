@@ -82,20 +82,24 @@ class Collinearity:
 
     def advice(self) -> str:
         """What excitation would separate the unidentifiable terms ('' when every term is identifiable): the
-        factor a tied pair differs by, when it has one (factor_advice), then the advice per kind of
-        variable in the pairs."""
+        factor tied pairs differ by, where they have one (tie_factor), then the advice per kind of variable
+        in the pairs."""
         kinds: list[str] = []
-        factors: list[str] = []
+        factors: dict[str, list[str]] = {}  # factor -> the pairs it ties
         for t in [*self.unidentifiable, *self.confounders]:
-            line = factor_advice(t.term, t.partner)
-            if line and line not in factors:
-                factors.append(line)
+            factor = tie_factor(t.term, t.partner)
+            pair = " and ".join(sorted((t.term, t.partner)))
+            if factor and pair not in factors.setdefault(factor, []):
+                factors[factor].append(pair)
             for name in (t.term, t.partner):
                 for sym in sorted(_symbols_in(name)):
                     k = _KIND.get(sym)
                     if k and k not in kinds:
                         kinds.append(k)
-        return "; ".join([*factors, *(_ADVICE[k] for k in kinds)])
+        lines = [f"vary {f} more during the flight ({'; '.join(pairs[:2])}{'; ...' * (len(pairs) > 2)} "
+                 "differ by this factor, which varies too little on this flight to tell them apart)"
+                 for f, pairs in factors.items()]
+        return "; ".join([*lines, *(_ADVICE[k] for k in kinds)])
 
     def as_dict(self) -> dict:
         """Plain mapping for the model file."""
@@ -119,9 +123,9 @@ class Collinearity:
         }
 
 
-def factor_advice(term: str, partner: str, max_ops: int = 12) -> str:
-    """The excitation that separates two tied terms that differ by a factor: '' unless term / partner (or
-    partner / term) simplifies to a non-constant expression of at most max_ops operations. Two such terms
+def tie_factor(term: str, partner: str, max_ops: int = 12) -> str:
+    """The factor two tied terms differ by: term / partner (or partner / term) when it simplifies to a
+    non-constant expression without a denominator, of at most max_ops operations, else ''. Such terms
     are told apart only by that factor's variation: the rate damping wx and the rotor drag's
     wx (u1 + u2 + u3 + u4) are tied on a flight whose rotor sum (the collective thrust) barely varies, and
     only a flight that varies the collective separates them, however its body rates are excited."""
@@ -134,8 +138,7 @@ def factor_advice(term: str, partner: str, max_ops: int = 12) -> str:
         ratio = sympy.cancel(num / den)
         _, ratio = sympy.Mul(ratio).as_coeff_Mul()
         if ratio.free_symbols and sympy.fraction(ratio)[1].is_number and sympy.count_ops(ratio) <= max_ops:
-            return (f"vary {expression_to_string(ratio)} more during the flight ({term} and {partner} differ "
-                    "by this factor, which varies too little on this flight to tell them apart)")
+            return expression_to_string(ratio)
     return ""
 
 
