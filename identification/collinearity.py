@@ -48,8 +48,9 @@ _KIND = {
     **{n: "rotor" for n in ("u1", "u2", "u3", "u4")},
     **{n: "angle" for n in ("phi", "theta", "psi")},
     **{n: "rate" for n in ("wx", "wy", "wz")},
-    **{n: "velocity" for n in ("vx", "vy", "vz")},
-    **{n: "position" for n in ("x", "y", "z")},
+    **{n: "velocity" for n in ("vx", "vy", "vz", "ub", "vb", "wb")},  # NED and body FRD
+    **{n: "position" for n in ("x", "y", "z", "h")},
+    **{n: "angle" for n in ("gx", "gy", "gz")},  # the gravity direction in the body frame
 }
 
 
@@ -80,15 +81,25 @@ class Collinearity:
         return sorted(bad, key=lambda t: -t.vif if np.isfinite(t.vif) else -np.inf)
 
     def advice(self) -> str:
-        """What excitation would separate the unidentifiable terms ('' when every term is identifiable)."""
+        """What excitation would separate the unidentifiable terms ('' when every term is identifiable): the
+        factor tied pairs differ by, where they have one (tie_factor), then the advice per kind of variable
+        in the pairs."""
         kinds: list[str] = []
+        factors: dict[str, list[str]] = {}  # factor -> the pairs it ties
         for t in [*self.unidentifiable, *self.confounders]:
+            factor = tie_factor(t.term, t.partner)
+            pair = " and ".join(sorted((t.term, t.partner)))
+            if factor and pair not in factors.setdefault(factor, []):
+                factors[factor].append(pair)
             for name in (t.term, t.partner):
                 for sym in sorted(_symbols_in(name)):
                     k = _KIND.get(sym)
                     if k and k not in kinds:
                         kinds.append(k)
-        return "; ".join(_ADVICE[k] for k in kinds)
+        lines = [f"vary {f} more during the flight ({'; '.join(pairs[:2])}{'; ...' * (len(pairs) > 2)} "
+                 "differ by this factor, which varies too little on this flight to tell them apart)"
+                 for f, pairs in factors.items()]
+        return "; ".join([*lines, *(_ADVICE[k] for k in kinds)])
 
     def as_dict(self) -> dict:
         """Plain mapping for the model file."""
@@ -112,16 +123,39 @@ class Collinearity:
         }
 
 
+def tie_factor(term: str, partner: str, max_ops: int = 12) -> str:
+    """The factor two tied terms differ by: term / partner (or partner / term) when it simplifies to a
+    non-constant expression without a denominator, of at most max_ops operations, else ''. Such terms
+    are told apart only by that factor's variation: the rate damping wx and the rotor drag's
+    wx (u1 + u2 + u3 + u4) are tied on a flight whose rotor sum (the collective thrust) barely varies, and
+    only a flight that varies the collective separates them, however its body rates are excited."""
+    a, b = _parse(term), _parse(partner)
+    if a is None or b is None or a == 0 or b == 0:
+        return ""
+    for num, den in ((a, b), (b, a)):
+        if sympy.count_ops(num) > 4 * max_ops + 40:  # the quotient of two large expressions: not a factor
+            return ""
+        ratio = sympy.cancel(num / den)
+        _, ratio = sympy.Mul(ratio).as_coeff_Mul()
+        if ratio.free_symbols and sympy.fraction(ratio)[1].is_number and sympy.count_ops(ratio) <= max_ops:
+            return expression_to_string(ratio)
+    return ""
+
+
+def _parse(text: str) -> sympy.Expr | None:
+    try:
+        return sympy.sympify(text, locals=dict(SYMBOLS))
+    except (sympy.SympifyError, TypeError, SyntaxError):
+        return None
+
+
 def _finite(v: float) -> float | str:
     return float(f"{v:.6g}") if np.isfinite(v) else "inf"
 
 
 def _symbols_in(text: str) -> set[str]:
-    try:
-        expr = sympy.sympify(text, locals=dict(SYMBOLS))
-    except (sympy.SympifyError, TypeError, SyntaxError):
-        return set()
-    return {str(s) for s in expr.free_symbols}
+    expr = _parse(text)
+    return set() if expr is None else {str(s) for s in expr.free_symbols}
 
 
 def column_collinearity(
@@ -185,6 +219,19 @@ def model_collinearity(
     """Collinearity of a chosen expression's terms on the fit rows X (N,16: the 12 states then u1..u4),
     and, given candidate feature columns (N,m) with names, the candidates confused with its terms."""
     cols, names = expression_columns(expr, X)
+    return terms_collinearity(cols, names, candidates, vif_limit, confounder_limit)
+
+
+def terms_collinearity(
+    cols: np.ndarray,
+    names: Sequence[str],
+    candidates: tuple[np.ndarray, Sequence[str]] | None = None,
+    vif_limit: float = VIF_LIMIT,
+    confounder_limit: float = CONFOUNDER_VIF_LIMIT,
+) -> Collinearity:
+    """Collinearity of a model's term columns (N,k) named `names` (any variables: the 16 of the model
+    file, or the body-frame primitives), and, given candidate columns (N,m) with names, the candidates
+    confused with its terms (model_collinearity)."""
     own = column_collinearity(cols, names, vif_limit)
     if candidates is None or not names:
         return own

@@ -206,6 +206,7 @@ class DiscoveryEngine:
         self.notes = [f"{why}: none of its features is built (a term times it cannot be told from the term "
                       "alone on this flight; vary it more to identify its effects)"
                       for why in space.pruned if "barely varies" in why]
+        self.notes += inverse_notes(s, X)
         weak, weak_h = self.weak or (None, None)
         y_point = y
         if weak is not None:  # every column and the target integrated against the test functions
@@ -448,15 +449,18 @@ class DiscoveryEngine:
         sparse fit (least squares, the sparse paths, the pick's rules), so a GP product is refit and pruned
         term by term, and a candidate costs the complexity of the terms it keeps, not of one opaque tree.
         A term that is a combination of the others (u1*ub beside ub*(u1+u2+u3+u4) ...) is left out as in the
-        pool, and so is a front member expanding to more terms than 3 x max_terms; [] when no term is new
-        (the caller then keeps the GP candidates as they are). y: point targets (N,) of the fit rows X."""
+        pool, and so is a front member expanding to more terms than 3 x max_terms, and a term with a pole
+        inside the data (poles_in_data); [] when no term is new (the caller then keeps the GP candidates as
+        they are). y: point targets (N,) of the fit rows X."""
         base = _product_factors(best.expression)
         shapes = list(base)
+        P = columns.primitives(X)
         for extra in extras:
             try:
                 new = [t for t in term_shapes(sympy.expand(extra)) if t != 1 and t not in shapes]
             except (RecursionError, TypeError, ValueError):
                 continue
+            new = [t for t in new if not pole_in_data(t, prims, P)]
             if len(shapes) + len(new) <= 3 * self.settings.max_terms:
                 shapes += new
         if len(shapes) == len(base):
@@ -609,6 +613,49 @@ def _projected_scores(Z: np.ndarray, r: np.ndarray, model: np.ndarray, floor: fl
         usable = np.all(np.isfinite(Z[:1]), axis=0) & (perp2 > (floor**2) * len(r))
         scores = np.abs(r_perp @ Zf) / ((rs if rs > 0 else 1.0) * np.sqrt(np.where(usable, perp2, 1.0)))
     return np.where(usable & np.isfinite(scores), scores, -np.inf)
+
+
+def inverse_notes(s: DiscoverySettings, X: np.ndarray) -> list[str]:
+    """Identifiability notes for the positive primitives (the height, m) that get no 1/x^k features because
+    the fit rows X (N,16) come near zero on their own scale (min < median / inverse_span,
+    feature_space.grow_unary): a law that falls off with x (ground effect) is not identified from such a
+    flight, which passes near zero (a take-off) but spends its rows far from it; what would identify it."""
+    if "inv" not in s.operators:
+        return []
+    P = primitive_matrix(X, s.primitives)
+    out = []
+    for k, name in enumerate(s.primitives):
+        x = P[:, k]
+        if not PRIMITIVES[name].positive or not len(x) or not np.all(x > 0):
+            continue
+        low, median = float(x.min()), float(np.median(x))
+        if low * s.inverse_span >= median:
+            continue
+        near = float(np.mean(x * s.inverse_span < median))  # the rows where a 1/x law would be resolved
+        out.append(f"{name}: no 1/{name}^k features (its lowest value on the fit rows, {low:.3g}, is below "
+                   f"its median {median:.3g} / {s.inverse_span:g}: a few rows would own a law in 1/{name});"
+                   f" a law that falls off with {name} (ground effect) is not identified from this flight "
+                   f"({near:.1%} of its rows below median / {s.inverse_span:g}); to identify it, fly longer "
+                   f"within a factor {s.inverse_span:g} of the lowest {name} (a low hover near the ground)")
+    return out
+
+
+def pole_in_data(term: sympy.Expr, prims: Sequence[str], P: np.ndarray) -> bool:
+    """True when a term (primitive names) has a pole inside the data: its denominator takes both signs or
+    is zero on some row of P (N, n_primitives), so the term is unbounded between the rows. The feature
+    space never builds 1/x for such an x (feature_space.grow_unary); genetic programming divides freely,
+    and a quotient by a quantity crossing zero (|ub|/(h^2 vb)) fits a handful of rows near the pole with a
+    coefficient of 1e-20: no physical law (a force or moment) is unbounded inside the flown envelope."""
+    _, den = sympy.fraction(sympy.together(term))
+    if den.is_number:
+        return False
+    missing = [s for s in den.free_symbols if str(s) not in prims]
+    if missing:
+        return False
+    values = _lambdify(list(prims), [den])(P)[:, 0]
+    finite = values[np.isfinite(values)]
+    return bool(len(finite) < len(values) or np.any(finite == 0.0)
+                or (np.any(finite < 0.0) and np.any(finite > 0.0)))
 
 
 def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:

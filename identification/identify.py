@@ -20,6 +20,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import sympy
 
 from bridge.errors import UserError
 from identification.body_frame import (
@@ -29,29 +30,42 @@ from identification.body_frame import (
     body_targets,
     composed_targets,
     primitive_info,
-    to_variables,
 )
 from identification.candidate import Candidate
 from identification.collinearity import (
     CONFOUNDER_VIF_LIMIT,
     VIF_LIMIT,
+    Collinearity,
     column_collinearity,
     describe,
     model_collinearity,
+    term_shapes,
+    terms_collinearity,
 )
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
 from identification.equation_form import equation_text
+from identification.height_law import body_values
 from identification.library import build_library, feature_matrix
 from identification.metrics import LOSSES, table_metrics, weak_metrics
-from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel
+from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel, expression_to_string
 from identification.pareto import admissible, attach_holdout, excited, front_points, select
 from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
 from identification.self_feedback import mark_self_feedback
 from identification.weak_form import WeakSettings, weak_rows
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
+
+
+def body_collinearity(expr: sympy.Expr, X: np.ndarray,
+                      candidates: tuple[np.ndarray, Sequence[str]] | None = None) -> Collinearity:
+    """Collinearity of a body-frame expression's terms on the rows X (N,16), the terms named in the
+    body-frame primitives the engine learned them in (ub*Abs(ub), not their expansion in the 16 variables,
+    which no reader can match to a term of the model); candidates as model_collinearity's."""
+    shapes = [s for s in term_shapes(expr) if s != 1]
+    cols = np.column_stack([body_values(s, X) for s in shapes]) if shapes else np.zeros((len(X), 0))
+    return terms_collinearity(cols, [expression_to_string(s) for s in shapes], candidates)
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 
 
@@ -235,7 +249,7 @@ def identify(
         if body_frame:  # the terms as functions of the 16 variables; the library's candidates are in the
             # body frame for the angular accelerations only (its forces are NED), so only they are tried there
             cands = (library_columns[ok], library_names) if name.startswith("dw") else None
-            coll = model_collinearity(to_variables(chosen.expression), X[ok], cands)
+            coll = body_collinearity(chosen.expression, X[ok], cands)
         else:
             coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         identifiability[name] = coll.as_dict()
