@@ -34,7 +34,7 @@ import sympy
 from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
-from identification.collinearity import term_identification, term_shapes
+from identification.collinearity import term_identification, term_shapes, term_t_ratios
 from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import (
     OPERATORS,
@@ -226,14 +226,19 @@ class DiscoveryEngine:
         best: Candidate | None = None
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
         for rnd in range(max(s.rounds, 1)):
-            model_cols = F[:, self._features.get(id(best), np.zeros(0, int))]
+            model_terms = self._features.get(id(best), np.zeros(0, int))
+            model_cols = F[:, model_terms]
             scores = _projected_scores(Z, residual if weights is None else weights * residual, model_cols)
-            scores[pool] = -np.inf
             new = basis.add_first(F, swaps)  # replacement screening first
+            # a proposed swap that is a combination of pool features takes the place of one of them
+            swapped = _swap_in_combinations(F, pool, [i for i in swaps if i not in new],
+                                            {i for i in pool if space.rungs[i] == 1}, scores,
+                                            _model_t(F, model_terms, y))
+            scores[pool] = -np.inf
             order = np.argsort(-scores, kind="stable")
             limit = s.screen + len(swaps) - len(new)
             new += basis.add_first(F, order[np.isfinite(scores[order])], limit=limit)
-            if not new:
+            if not new and not swapped:
                 break
             pool += new
             ids = np.asarray(pool)
@@ -656,6 +661,72 @@ def pole_in_data(term: sympy.Expr, prims: Sequence[str], P: np.ndarray) -> bool:
     finite = values[np.isfinite(values)]
     return bool(len(finite) < len(values) or np.any(finite == 0.0)
                 or (np.any(finite < 0.0) and np.any(finite > 0.0)))
+
+
+def _swap_in_combinations(
+    F: np.ndarray,
+    pool: list[int],
+    features: Sequence[int],
+    fixed: set[int],
+    scores: np.ndarray,
+    model_t: dict[int, float],
+    tol: float = 1e-8,
+    member_tol: float = 1e-6,
+) -> list[int]:
+    """Each of `features` (columns of F (N,M)) that is a linear combination of two or more pool columns (and
+    the constant) takes, in `pool` (changed in place), the place of one of them: the pool spans the same
+    space and stays independent, but the combination is now one term. The pool keeps independent columns
+    only, in the order they came, so the first of several exactly dependent features blocks the others:
+    with u2 wz, u4 wz and wz (u1 - u2 + u3 - u4) in, wz (u1 + u2 + u3 + u4) = wz (u1 - u2 + u3 - u4) +
+    2 u2 wz + 2 u4 wz is left out, and a target with a small common part c wz (u1 + u2 + u3 + u4) needs two
+    terms of coefficient 2c for it, each below the pick's t ratio (fang-chen-aero's dwx: rotor drag of the
+    yaw rate with the CG aft of the rotors' centre). The member replaced is not in `fixed` (rung 1, always
+    in): one outside the current model first, the lowest `scores` (per column of F: what it adds to the
+    model against the residual, _projected_scores), else the model's term with the lowest t ratio
+    (`model_t`: the term the flight pins down least, the one a shared part of the others is likely split
+    into; the model stays in the pool's span, and rewritten with the combination the split part is one
+    term the sparse paths can keep and the rest near zero). The combination (unique: the pool is
+    independent) is the least-squares one over the pool's unit columns, its members those weighing more
+    than `member_tol`; a feature whose rest exceeds `tol` of its norm is independent and left alone (only
+    features the pool rejected come here, a few a round). Returns the features swapped in."""
+    swapped: list[int] = []
+    if not features or not pool:
+        return swapped
+    n = F.shape[0]
+    cols = F[:, pool]
+    A = np.hstack([np.full((n, 1), 1.0 / np.sqrt(n)), cols / np.linalg.norm(cols, axis=0)])
+    for f in features:
+        v = F[:, f]
+        size = float(np.linalg.norm(v))
+        if f in pool or not (np.isfinite(size) and size > 0.0):
+            continue
+        v = v / size
+        coef = np.linalg.lstsq(A, v, rcond=None)[0]
+        if not np.linalg.norm(v - A @ coef) <= tol:
+            continue
+        members = [pool[j] for j in np.flatnonzero(np.abs(coef[1:]) > member_tol)]
+        free = [i for i in members if i not in fixed]
+        if len(members) < 2 or not free:
+            continue
+        out = min(free, key=lambda i: (1, model_t[i]) if i in model_t else
+                  (0, scores[i] if np.isfinite(scores[i]) else -np.inf))
+        k = pool.index(out)
+        pool[k] = f
+        A[:, k + 1] = v
+        swapped.append(f)
+    return swapped
+
+
+def _model_t(F: np.ndarray, terms: np.ndarray, y: np.ndarray) -> dict[int, float]:
+    """Each model term's t ratio (collinearity.term_t_ratios: least squares with a constant, AR(1)-corrected
+    sample size) on columns F[:, terms] (N,k) against y (N,); NaN where it cannot be measured."""
+    terms = [int(i) for i in terms]
+    if not terms:
+        return {}
+    t, _ = term_t_ratios(np.hstack([np.ones((len(y), 1)), F[:, terms]]), y)
+    if t is None:
+        return {}
+    return {i: float(tk) if np.isfinite(tk) else float("nan") for i, tk in zip(terms, t[1:], strict=True)}
 
 
 def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:
