@@ -455,7 +455,7 @@ class DiscoveryEngine:
         term by term, and a candidate costs the complexity of the terms it keeps, not of one opaque tree.
         A term that is a combination of the others (u1*ub beside ub*(u1+u2+u3+u4) ...) is left out as in the
         pool, and so is a front member expanding to more terms than 3 x max_terms, and a term with a pole
-        inside the data (poles_in_data); [] when no term is new (the caller then keeps the GP candidates as
+        inside the data (pole_in_data); [] when no term is new (the caller then keeps the GP candidates as
         they are). y: point targets (N,) of the fit rows X."""
         base = _product_factors(best.expression)
         shapes = list(base)
