@@ -17,8 +17,16 @@ flight's raw sensor targets integrated against the same test functions; floors R
 Engines, same data, same run: ours (`discovery`, the default: body frame, features from primitives), the
 old library engine (`sparse`), and the baselines: PySINDy (STLSQ) with the physics library (quadsr's
 identification.library, the terms of the SITL's own equations), PySINDy with a generic polynomial library
-(degree 2 in the 16 variables), ordinary least squares on a 3-term physics library per target, and pyoperon
-alone. No effect is handed to any engine as a feature: ours only gets the body-frame primitives.
+(degree 2 in the 16 variables: 153 columns), ordinary least squares on a 3-term physics library per target,
+and pyoperon alone. No effect is handed to any engine as a feature: ours only gets the body-frame primitives.
+Each baseline's settings are printed and written above the table (baseline_settings): PySINDy's STLSQ with
+normalized columns and the threshold picked per target from 6 (1e-6 to 1e-1) on the training flight's last
+20 %; pyoperon alone through `quadsr identify --engine operon` (population 500, NSGA-II on r2 and length,
+constant fitting on) for --operon-generations generations per target (default 20: 10,000 individuals, about
+the CPU time ours takes on a SITL case; identify's default is 60, a pyoperon-alone case then takes 4-6 CPU
+minutes on 9,000 fit rows). The baselines run with BLAS on one thread, as ours and `sparse` run their fits:
+OpenBLAS's two threads spin on a loaded 2-core machine (PySINDy's degree-2 fit of a 15,000-row SITL case took
+51 s of CPU with two, 7.4 s with one, the same model).
 
 One table: case, engine, validation R^2 per target, true terms found / missing / extra, largest coefficient
 error, wall and CPU time. Terms are the expanded monomials of the BODY-FRAME expressions (fx fy fz dwx dwy dwz
@@ -99,6 +107,7 @@ from identification.model_file import (  # noqa: E402
     save_model,
 )
 from identification.segmentation import SegmentationSettings  # noqa: E402
+from identification.sparse import single_threaded_blas  # noqa: E402
 from identification.true_model import motor_combinations_sym, true_body_expressions, true_model  # noqa: E402
 from identification.validate import (  # noqa: E402
     compare_expressions,
@@ -265,7 +274,7 @@ def _pysindy(features: list[Feature], train: Dataset) -> Model:
     cut = int(0.8 * len(train))
     best = np.zeros((6, len(features)))
     best_loss = np.full(6, np.inf)
-    for thr in np.geomspace(1e-6, 1e-1, 6):
+    for thr in PYSINDY_THRESHOLDS:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             model = ps.SINDy(feature_library=ps.IdentityLibrary(),
@@ -285,6 +294,36 @@ def polynomial_features(degree: int) -> list[Feature]:
     for d in range(1, degree + 1):
         feats += [Feature("", sympy.Mul(*c), "poly") for c in combinations_with_replacement(syms, d)]
     return feats
+
+
+PYSINDY_THRESHOLDS = np.geomspace(1e-6, 1e-1, 6)  # STLSQ thresholds tried per target (normalized columns)
+OPERON_GENERATIONS = 20  # pyoperon alone: generations per target (population 500: 10,000 individuals)
+
+
+def baseline_settings(engines: list[str], operon_generations: int, seed: int) -> list[str]:
+    """One line per baseline in `engines`: what it fitted and with which settings (for the table)."""
+    from identification.engine_settings import OperonSettings
+
+    sweep = (f"STLSQ (normalize_columns) with the threshold picked per target from {len(PYSINDY_THRESHOLDS)} "
+             f"({PYSINDY_THRESHOLDS[0]:g} to {PYSINDY_THRESHOLDS[-1]:g}, geometric) by the mean absolute "
+             "error on the last 20 % of the training flight (fitted on the first 80 %)")
+    o = OperonSettings()
+    lines = {
+        "pysindy-physics": f"PySINDy, quadsr's physics library (identification.library, "
+                           f"{len(build_library(DEFAULT_GROUPS))} columns), {sweep}",
+        "pysindy-poly2": f"PySINDy, every monomial of degree <= 2 in the 16 variables "
+                         f"({len(polynomial_features(2))} columns), {sweep}",
+        "ols-3term": "ordinary least squares per target on 3 physics terms (thrust, drag or coupling, offset "
+                     "or damping)",
+        "operon": f"pyoperon alone (quadsr identify --engine operon, NED targets): NSGA-II on (r2, length), "
+                  f"population {o.population_size}, {operon_generations} generations per target "
+                  f"({o.population_size * operon_generations:,} individuals; quadsr identify's default is "
+                  f"{DEFAULT_BUDGET}), Levenberg-Marquardt constant fitting {o.optimizer_iterations} "
+                  f"iterations, max length {o.max_length}, depth {o.max_depth}, {o.allowed_symbols}, "
+                  f"engineered inputs, {o.n_threads} threads, seed {seed}; the model picked on identify's "
+                  "held-out rows",
+    }
+    return [f"{e}: {lines[e]}" for e in engines if e in lines]
 
 
 def ols_three_terms(train: Dataset) -> Model:
@@ -312,17 +351,24 @@ def ols_three_terms(train: Dataset) -> Model:
 
 def fit(engine: str, train: Dataset, seed: int, gravity: float, budget: int,
         operon_generations: int) -> Model:
-    """One engine's model of the six targets from the training flight (budget: GP generations)."""
-    if engine in ("discovery", "sparse", "operon"):
-        generations = operon_generations if engine == "operon" else budget
-        return identify(train, engine=engine, budget=generations, seed=seed, progress=False, gravity=gravity)
-    if engine == "pysindy-physics":
-        return _pysindy(build_library(DEFAULT_GROUPS), train)
-    if engine == "pysindy-poly2":
-        return _pysindy(polynomial_features(2), train)
-    if engine == "ols-3term":
+    """One engine's model of the six targets from the training flight (budget: GP generations).
+
+    The baselines run with BLAS on one thread, as ours and `sparse` run their fits (single_threaded_blas):
+    the same numbers, but OpenBLAS's two threads spin on a loaded 2-core machine (STLSQ's least squares on
+    15,000 x 153 took 7x the CPU time)."""
+    if engine in ("discovery", "sparse"):
+        return identify(train, engine=engine, budget=budget, seed=seed, progress=False, gravity=gravity)
+    if engine not in BASELINES:
+        raise SystemExit(f"unknown engine {engine!r} (known: {', '.join(ENGINES)})")
+    with single_threaded_blas():
+        if engine == "operon":
+            return identify(train, engine=engine, budget=operon_generations, seed=seed, progress=False,
+                            gravity=gravity)
+        if engine == "pysindy-physics":
+            return _pysindy(build_library(DEFAULT_GROUPS), train)
+        if engine == "pysindy-poly2":
+            return _pysindy(polynomial_features(2), train)
         return ols_three_terms(train)
-    raise SystemExit(f"unknown engine {engine!r} (known: {', '.join(ENGINES)})")
 
 
 @dataclass
@@ -460,9 +506,11 @@ def table(rows: list[Row]) -> str:
 
 
 def write_outputs(rows: list[Row], floors: list[tuple[str, bool]], out: Path,
-                  stem: str = "discovery") -> None:
-    """OUT/<stem>.md (the table, the floors, ours' missing/extra terms) and OUT/<stem>.csv."""
-    md = [table(rows), "", *[f"- [{'PASS' if ok else 'FAIL'}] {label}" for label, ok in floors], ""]
+                  stem: str = "discovery", settings: list[str] | None = None) -> None:
+    """OUT/<stem>.md (the baselines' settings, the table, the floors, ours' missing/extra terms) and
+    OUT/<stem>.csv."""
+    md = [*[f"- {line}" for line in settings or []], *([""] if settings else []), table(rows), "",
+          *[f"- [{'PASS' if ok else 'FAIL'}] {label}" for label, ok in floors], ""]
     for r in rows:
         left_out = r.missing_terms or r.extra_terms or r.unidentifiable_missing
         if r.engine.startswith("discovery") and left_out:
@@ -572,7 +620,8 @@ def main() -> int:
     ap.add_argument("--engines", default=",".join(ENGINES), help=f"comma-separated, of {', '.join(ENGINES)}")
     ap.add_argument("--rows", type=int, default=4000, help="synthetic rows per flight (250 Hz: 16 s)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--operon-generations", type=int, default=60, help="the pyoperon-alone baseline's budget")
+    ap.add_argument("--operon-generations", type=int, default=OPERON_GENERATIONS,
+                    help="the pyoperon-alone baseline's generations per target")
     ap.add_argument("--budget", type=int, default=DEFAULT_BUDGET,
                     help="the discovery engine's genetic-programming generations per target")
     ap.add_argument("--train-duration", type=float, default=60.0, help="SITL training flight, s simulated")
@@ -590,6 +639,9 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows: list[Row] = []
     floors: list[tuple[str, bool]] = []
+    settings = baseline_settings(engines, args.operon_generations, args.seed)
+    for line in settings:
+        print(f"baseline {line}")
     for case in cases:
         if case.sitl_vehicle is not None and vehicle_file(case.sitl_vehicle) is None:
             print(f"== {case.name}: vehicle {case.sitl_vehicle!r} not in this checkout: not run")
@@ -636,8 +688,9 @@ def main() -> int:
             report_row(row)
         rows += case_rows
         floors += case_floors(case, case_rows, args.train_duration)
-        write_outputs(rows, floors, out)
+        write_outputs(rows, floors, out, settings=settings)
     print()
+    print("\n".join(f"- {line}" for line in settings))
     print(table(rows))
     print()
     for label, ok in floors:
