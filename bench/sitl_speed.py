@@ -11,9 +11,9 @@ Prints, each as the median of --repeats runs:
   full          `quadsr sitl` in lockstep with a trivial companion (bridge.lockstep.LockstepClient, constant
                 throttles) (steps/s)
   full/ceiling  the ratio (floor 0.5), and full >= 5000 steps/s (floor), for each vehicle
-It also prints the CPU time per step of the SITL process and of the companion, their sum over the ceiling's
-CPU time per round trip (both of its processes): what a loaded machine changes least, and PASS only when
-every floor holds for both vehicles.
+It also prints the CPU time per step of the SITL process and of the companion (and the kernel's share of each:
+system time), their sum over the ceiling's CPU time per round trip (both of its processes): what a loaded
+machine changes least, and PASS only when every floor holds for both vehicles.
 
 Usage: python bench/sitl_speed.py [--steps 20000] [--repeats 3]
 """
@@ -132,12 +132,19 @@ def ceiling_rate(steps: int) -> tuple[float, float]:
 
 def _cpu_seconds(pid: int) -> float:
     """User + system CPU time of a process, s (Linux /proc)."""
+    return sum(_cpu_times(pid))
+
+
+def _cpu_times(pid: int) -> tuple[float, float]:
+    """(user, system) CPU time of a process, s (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    tick = os.sysconf("SC_CLK_TCK")
+    return int(fields[11]) / tick, int(fields[12]) / tick
 
 
-def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, float]:
-    """(steps/s, SITL CPU us/step, companion CPU us/step): `quadsr sitl` in lockstep with a LockstepClient."""
+def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, float, float, float]:
+    """(steps/s, SITL CPU us/step, companion CPU us/step, and of these the kernel's (system time): SITL,
+    companion): `quadsr sitl` in lockstep with a LockstepClient."""
     from bridge.lockstep import LockstepClient
 
     # A ground station that listens (never read here: the kernel drops what overflows its buffer). A closed
@@ -157,12 +164,15 @@ def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, fl
             throttles = (0.6, 0.6, 0.6, 0.6)
             for _ in range(200):  # warm up
                 client.step(throttles)
-            sitl0, own0, t0 = _cpu_seconds(proc.pid), time.process_time(), time.perf_counter()
+            sitl0, own0, t0 = _cpu_times(proc.pid), os.times(), time.perf_counter()
             for _ in range(steps):
                 client.step(throttles)
             wall = time.perf_counter() - t0
-            sitl_cpu = (_cpu_seconds(proc.pid) - sitl0) / steps * 1e6
-            return steps / wall, sitl_cpu, (time.process_time() - own0) / steps * 1e6
+            sitl1, own1 = _cpu_times(proc.pid), os.times()
+            us = 1e6 / steps
+            return (steps / wall, (sum(sitl1) - sum(sitl0)) * us,
+                    (own1.user + own1.system - own0.user - own0.system) * us,
+                    (sitl1[1] - sitl0[1]) * us, (own1.system - own0.system) * us)
     finally:
         proc.terminate()
         try:
@@ -183,7 +193,7 @@ def main() -> int:
     if args.echo:
         echo_server()
         return 0
-    kinds = ("physics", "physics_cpu", "full", "sitl_cpu", "client_cpu")
+    kinds = ("physics", "physics_cpu", "full", "sitl_cpu", "client_cpu", "sitl_sys", "client_sys")
     names = ["ceiling", "ceiling_cpu"] + [f"{k} {v}" for v in VEHICLES for k in kinds]
     results: dict[str, list[float]] = {k: [] for k in names}
     for i in range(args.repeats):
@@ -195,10 +205,12 @@ def main() -> int:
             results[f"physics {v}"].append(physics)
             results[f"physics_cpu {v}"].append(physics_cpu)
             extra = ("--vehicle", v) + (AERO_WIND_FLAGS if v == "fang-chen-aero" else ())
-            rate, sitl_cpu, client_cpu = full_rate(args.steps, extra)
+            rate, sitl_cpu, client_cpu, sitl_sys, client_sys = full_rate(args.steps, extra)
             results[f"full {v}"].append(rate)
             results[f"sitl_cpu {v}"].append(sitl_cpu)
             results[f"client_cpu {v}"].append(client_cpu)
+            results[f"sitl_sys {v}"].append(sitl_sys)
+            results[f"client_sys {v}"].append(client_sys)
         print(f"run {i + 1}: " + ", ".join(f"{k} {v[-1]:,.0f}" for k, v in results.items()), flush=True)
     med = {k: statistics.median(v) for k, v in results.items()}
     print(f"cpu cores: {os.cpu_count()}, steps per run: {args.steps}, medians of {args.repeats} runs")
@@ -217,6 +229,8 @@ def main() -> int:
         print(f"  CPU per step: SITL process {med[f'sitl_cpu {v}']:.0f} us (physics, sensors, frames, UDP), "
               f"companion {med[f'client_cpu {v}']:.0f} us; both / the ceiling's: "
               f"{cpu / med['ceiling_cpu']:.2f}")
+        print(f"  of which in the kernel (system time: UDP, wake-ups, context switches): SITL "
+              f"{med[f'sitl_sys {v}']:.0f} us, companion {med[f'client_sys {v}']:.0f} us")
         print(f"  full / ceiling: {ratio:.2f}; physics share of a full step: {full / physics:.0%}")
         ok = ok and full >= 5000 and ratio >= 0.5 and physics >= 20000
     print(f"floors (each vehicle: physics >= 20,000 steps/s, full >= 5000 steps/s, full/ceiling >= 0.5): "
