@@ -13,7 +13,10 @@ Prints, each as the median of --repeats runs:
   full/ceiling  the ratio (floor 0.5), and full >= 5000 steps/s (floor), for each vehicle
 It also prints the CPU time per step of the SITL process and of the companion (and the kernel's share of each:
 system time), their sum over the ceiling's CPU time per round trip (both of its processes): what a loaded
-machine changes least, and PASS only when every floor holds for both vehicles.
+machine changes least, and PASS only when every floor holds for both vehicles. And the SITL's context switches
+per step: ~1 involuntary when the companion is woken on the SITL's core (the cheap case), ~1 voluntary when
+each step crosses cores (measured: about twice the CPU per step for both processes, e.g. when the other core
+is idle on a quiet machine and the kernel wakes the receiver there).
 
 Usage: python bench/sitl_speed.py [--steps 20000] [--repeats 3]
 """
@@ -142,9 +145,17 @@ def _cpu_times(pid: int) -> tuple[float, float]:
     return int(fields[11]) / tick, int(fields[12]) / tick
 
 
-def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, float, float, float]:
-    """(steps/s, SITL CPU us/step, companion CPU us/step, and of these the kernel's (system time): SITL,
-    companion): `quadsr sitl` in lockstep with a LockstepClient."""
+def _context_switches(pid: int) -> tuple[int, int]:
+    """(voluntary, involuntary) context switches of a process so far (Linux /proc)."""
+    counts = dict(line.split(":") for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                  if line.endswith(tuple("0123456789")) and "ctxt_switches" in line)
+    return int(counts["voluntary_ctxt_switches"]), int(counts["nonvoluntary_ctxt_switches"])
+
+
+def full_rate(steps: int, extra: tuple[str, ...] = ()) -> dict[str, float]:
+    """`quadsr sitl` in lockstep with a LockstepClient: full (steps/s), sitl_cpu and client_cpu (CPU us/step),
+    sitl_sys and client_sys (of these, the kernel's: system time), sitl_vol and sitl_invol (the SITL's
+    voluntary and involuntary context switches per step)."""
     from bridge.lockstep import LockstepClient
 
     # A ground station that listens (never read here: the kernel drops what overflows its buffer). A closed
@@ -164,15 +175,23 @@ def full_rate(steps: int, extra: tuple[str, ...] = ()) -> tuple[float, float, fl
             throttles = (0.6, 0.6, 0.6, 0.6)
             for _ in range(200):  # warm up
                 client.step(throttles)
+            switches0 = _context_switches(proc.pid)
             sitl0, own0, t0 = _cpu_times(proc.pid), os.times(), time.perf_counter()
             for _ in range(steps):
                 client.step(throttles)
             wall = time.perf_counter() - t0
             sitl1, own1 = _cpu_times(proc.pid), os.times()
+            switches1 = _context_switches(proc.pid)
             us = 1e6 / steps
-            return (steps / wall, (sum(sitl1) - sum(sitl0)) * us,
-                    (own1.user + own1.system - own0.user - own0.system) * us,
-                    (sitl1[1] - sitl0[1]) * us, (own1.system - own0.system) * us)
+            return {
+                "full": steps / wall,
+                "sitl_cpu": (sum(sitl1) - sum(sitl0)) * us,
+                "client_cpu": (own1.user + own1.system - own0.user - own0.system) * us,
+                "sitl_sys": (sitl1[1] - sitl0[1]) * us,
+                "client_sys": (own1.system - own0.system) * us,
+                "sitl_vol": (switches1[0] - switches0[0]) / steps,
+                "sitl_invol": (switches1[1] - switches0[1]) / steps,
+            }
     finally:
         proc.terminate()
         try:
@@ -193,7 +212,8 @@ def main() -> int:
     if args.echo:
         echo_server()
         return 0
-    kinds = ("physics", "physics_cpu", "full", "sitl_cpu", "client_cpu", "sitl_sys", "client_sys")
+    full_kinds = ("full", "sitl_cpu", "client_cpu", "sitl_sys", "client_sys", "sitl_vol", "sitl_invol")
+    kinds = ("physics", "physics_cpu", *full_kinds)
     names = ["ceiling", "ceiling_cpu"] + [f"{k} {v}" for v in VEHICLES for k in kinds]
     results: dict[str, list[float]] = {k: [] for k in names}
     for i in range(args.repeats):
@@ -205,13 +225,10 @@ def main() -> int:
             results[f"physics {v}"].append(physics)
             results[f"physics_cpu {v}"].append(physics_cpu)
             extra = ("--vehicle", v) + (AERO_WIND_FLAGS if v == "fang-chen-aero" else ())
-            rate, sitl_cpu, client_cpu, sitl_sys, client_sys = full_rate(args.steps, extra)
-            results[f"full {v}"].append(rate)
-            results[f"sitl_cpu {v}"].append(sitl_cpu)
-            results[f"client_cpu {v}"].append(client_cpu)
-            results[f"sitl_sys {v}"].append(sitl_sys)
-            results[f"client_sys {v}"].append(client_sys)
-        print(f"run {i + 1}: " + ", ".join(f"{k} {v[-1]:,.0f}" for k, v in results.items()), flush=True)
+            for k, value in full_rate(args.steps, extra).items():
+                results[f"{k} {v}"].append(value)
+        print(f"run {i + 1}: " + ", ".join(f"{k} {v[-1]:,.2f}" if "vol" in k else f"{k} {v[-1]:,.0f}"
+                                          for k, v in results.items()), flush=True)
     med = {k: statistics.median(v) for k, v in results.items()}
     print(f"cpu cores: {os.cpu_count()}, steps per run: {args.steps}, medians of {args.repeats} runs")
     print(f"messaging ceiling (bare pymavlink ping-pong, 2 processes): {med['ceiling']:,.0f} round trips/s "
@@ -231,6 +248,8 @@ def main() -> int:
               f"{cpu / med['ceiling_cpu']:.2f}")
         print(f"  of which in the kernel (system time: UDP, wake-ups, context switches): SITL "
               f"{med[f'sitl_sys {v}']:.0f} us, companion {med[f'client_sys {v}']:.0f} us")
+        print(f"  SITL context switches per step: {med[f'sitl_invol {v}']:.2f} involuntary (companion woken "
+              f"on the SITL's core), {med[f'sitl_vol {v}']:.2f} voluntary (cross-core wake-ups: ~2x the CPU)")
         print(f"  full / ceiling: {ratio:.2f}; physics share of a full step: {full / physics:.0%}")
         ok = ok and full >= 5000 and ratio >= 0.5 and physics >= 20000
     print(f"floors (each vehicle: physics >= 20,000 steps/s, full >= 5000 steps/s, full/ceiling >= 0.5): "
