@@ -14,9 +14,9 @@ Prints, each as the median of --repeats runs:
 It also prints the CPU time per step of the SITL process and of the companion (and the kernel's share of each:
 system time), their sum over the ceiling's CPU time per round trip (both of its processes): what a loaded
 machine changes least, and PASS only when every floor holds for both vehicles. And the SITL's context switches
-per step: ~1 involuntary when the companion is woken on the SITL's core (the cheap case), ~1 voluntary when
-each step crosses cores (measured: about twice the CPU per step for both processes, e.g. when the other core
-is idle on a quiet machine and the kernel wakes the receiver there).
+per step: ~1 involuntary when the companion is woken on the SITL's core and runs at once, ~1 voluntary when
+the SITL sleeps for each reply (the companion ran on the other core, or other processes ran in between; with
+the two pinned to different cores on a loaded machine both took about twice the CPU per step).
 
 Usage: python bench/sitl_speed.py [--steps 20000] [--repeats 3]
 """
@@ -249,7 +249,7 @@ def main() -> int:
         print(f"  of which in the kernel (system time: UDP, wake-ups, context switches): SITL "
               f"{med[f'sitl_sys {v}']:.0f} us, companion {med[f'client_sys {v}']:.0f} us")
         print(f"  SITL context switches per step: {med[f'sitl_invol {v}']:.2f} involuntary (companion woken "
-              f"on the SITL's core), {med[f'sitl_vol {v}']:.2f} voluntary (cross-core wake-ups: ~2x the CPU)")
+              f"on the SITL's core), {med[f'sitl_vol {v}']:.2f} voluntary (the SITL slept for the reply)")
         print(f"  full / ceiling: {ratio:.2f}; physics share of a full step: {full / physics:.0%}")
         ok = ok and full >= 5000 and ratio >= 0.5 and physics >= 20000
     print(f"floors (each vehicle: physics >= 20,000 steps/s, full >= 5000 steps/s, full/ceiling >= 0.5): "
