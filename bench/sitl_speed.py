@@ -152,10 +152,12 @@ def _context_switches(pid: int) -> tuple[int, int]:
     return int(counts["voluntary_ctxt_switches"]), int(counts["nonvoluntary_ctxt_switches"])
 
 
-def full_rate(steps: int, extra: tuple[str, ...] = ()) -> dict[str, float]:
+def full_rate(steps: int, extra: tuple[str, ...] = (), spin: bool = True) -> dict[str, float]:
     """`quadsr sitl` in lockstep with a LockstepClient: full (steps/s), sitl_cpu and client_cpu (CPU us/step),
     sitl_sys and client_sys (of these, the kernel's: system time), sitl_vol and sitl_invol (the SITL's
-    voluntary and involuntary context switches per step)."""
+    voluntary and involuntary context switches per step). spin False: neither process polls for the other's
+    datagram before sleeping for it (`quadsr sitl --lockstep-spin-us 0`, LockstepClient(spin=0))."""
+    from bridge.link import LOCKSTEP_SPIN_S
     from bridge.lockstep import LockstepClient
 
     # A ground station that listens (never read here: the kernel drops what overflows its buffer). A closed
@@ -163,14 +165,15 @@ def full_rate(steps: int, extra: tuple[str, ...] = ()) -> dict[str, float]:
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind(("127.0.0.1", 0))
     cmd = [sys.executable, "-m", "quadsr.cli", "sitl", "--hil", "udp:127.0.0.1:0",
-           "--gcs", f"udp:127.0.0.1:{gcs.getsockname()[1]}", "--status-interval", "0", *extra]
+           "--gcs", f"udp:127.0.0.1:{gcs.getsockname()[1]}", "--status-interval", "0", *extra,
+           *(() if spin else ("--lockstep-spin-us", "0"))]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()
         m = re.search(r"listening for the companion on (udp:[\d.]+:\d+)", line)
         if m is None:
             raise RuntimeError(f"unexpected SITL output: {line!r}")
-        with LockstepClient(m.group(1), timeout=5.0) as client:
+        with LockstepClient(m.group(1), timeout=5.0, spin=LOCKSTEP_SPIN_S if spin else 0.0) as client:
             client.connect(10.0)
             throttles = (0.6, 0.6, 0.6, 0.6)
             for _ in range(200):  # warm up
@@ -215,6 +218,7 @@ def main() -> int:
     full_kinds = ("full", "sitl_cpu", "client_cpu", "sitl_sys", "client_sys", "sitl_vol", "sitl_invol")
     kinds = ("physics", "physics_cpu", *full_kinds)
     names = ["ceiling", "ceiling_cpu"] + [f"{k} {v}" for v in VEHICLES for k in kinds]
+    names += [f"nospin_{k} {v}" for v in VEHICLES for k in ("full", "sitl_cpu", "client_cpu")]
     results: dict[str, list[float]] = {k: [] for k in names}
     for i in range(args.repeats):
         rate, cpu = ceiling_rate(args.steps)
@@ -227,6 +231,9 @@ def main() -> int:
             extra = ("--vehicle", v) + (AERO_WIND_FLAGS if v == "fang-chen-aero" else ())
             for k, value in full_rate(args.steps, extra).items():
                 results[f"{k} {v}"].append(value)
+            nospin = full_rate(args.steps, extra, spin=False)
+            for k in ("full", "sitl_cpu", "client_cpu"):
+                results[f"nospin_{k} {v}"].append(nospin[k])
         print(f"run {i + 1}: " + ", ".join(f"{k} {v[-1]:,.2f}" if "vol" in k else f"{k} {v[-1]:,.0f}"
                                           for k, v in results.items()), flush=True)
     med = {k: statistics.median(v) for k, v in results.items()}
@@ -250,6 +257,11 @@ def main() -> int:
               f"{med[f'sitl_sys {v}']:.0f} us, companion {med[f'client_sys {v}']:.0f} us")
         print(f"  SITL context switches per step: {med[f'sitl_invol {v}']:.2f} involuntary (companion woken "
               f"on the SITL's core), {med[f'sitl_vol {v}']:.2f} voluntary (the SITL slept for the reply)")
+        print(f"  the same without polling for the reply (both sleep at once): "
+              f"{med[f'nospin_full {v}']:,.0f} "
+              f"steps/s (SITL {med[f'nospin_sitl_cpu {v}']:.0f} us, companion "
+              f"{med[f'nospin_client_cpu {v}']:.0f} us of CPU per step); polling / not: "
+              f"{full / med[f'nospin_full {v}']:.2f}")
         print(f"  full / ceiling: {ratio:.2f}; physics share of a full step: {full / physics:.0%}")
         ok = ok and full >= 5000 and ratio >= 0.5 and physics >= 20000
     print(f"floors (each vehicle: physics >= 20,000 steps/s, full >= 5000 steps/s, full/ceiling >= 0.5): "
