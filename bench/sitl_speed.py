@@ -6,7 +6,8 @@ noise 10 rad/s and wind: 5 m/s steady, moderate Dryden turbulence, a 1-cosine gu
 Prints, each as the median of --repeats runs:
   physics       Quadrotor.step + SensorModel.sample, no MAVLink (steps/s; floor 20,000 with every effect on),
                 also by the process's CPU time (what the machine's load changes least)
-  ceiling       a bare pymavlink HIL_SENSOR -> HIL_ACTUATOR_CONTROLS ping-pong between two processes over
+  ceiling       (the faster of: sleeping for each datagram; polling up to bridge.link.LOCKSTEP_SPIN_S first)
+                a bare pymavlink HIL_SENSOR -> HIL_ACTUATOR_CONTROLS ping-pong between two processes over
                 loopback UDP (round trips/s): what one lockstep exchange can cost at best
   full          `quadsr sitl` in lockstep with a trivial companion (bridge.lockstep.LockstepClient, constant
                 throttles) (steps/s)
@@ -32,6 +33,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from bridge.link import LOCKSTEP_SPIN_S  # noqa: E402
 
 ECHO_READY = "echo ready"
 
@@ -73,8 +77,23 @@ def physics_rate(steps: int, name: str = "fang-chen-buaa") -> tuple[float, float
     return steps / (time.perf_counter() - t0), steps / (time.process_time() - c0)
 
 
-def echo_server() -> None:
-    """The ping-pong's other process: answer each HIL_SENSOR with HIL_ACTUATOR_CONTROLS (bare pymavlink)."""
+def _polled_recv(sock: socket.socket, seconds: float) -> bytes:
+    """sock's next datagram, polled for up to seconds (wall) before a blocking wait (as bridge.link's lockstep
+    links wait; seconds 0: block at once)."""
+    end = time.monotonic() + seconds
+    while seconds > 0.0:
+        try:
+            return sock.recv(65535, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            if time.monotonic() >= end:
+                break
+            os.sched_yield()
+    return sock.recv(65535)
+
+
+def echo_server(spin: float = 0.0) -> None:
+    """The ping-pong's other process: answer each HIL_SENSOR with HIL_ACTUATOR_CONTROLS (bare pymavlink),
+    polling for each datagram up to spin s before sleeping for it."""
     from pymavlink.dialects.v20 import common as mavlink
 
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -83,8 +102,12 @@ def echo_server() -> None:
     mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     mav.robust_parsing = True
     controls = [0.6] * 4 + [0.0] * 12
+    addr = None
     while True:
-        data, addr = sock.recvfrom(65535)
+        if addr is None:
+            data, addr = sock.recvfrom(65535)
+        else:
+            data = _polled_recv(sock, spin)
         if data == b"quit":
             return
         for msg in mav.parse_buffer(data) or []:
@@ -94,12 +117,14 @@ def echo_server() -> None:
                 mav.seq = (mav.seq + 1) % 256
 
 
-def ceiling_rate(steps: int) -> tuple[float, float]:
+def ceiling_rate(steps: int, spin: float = 0.0) -> tuple[float, float]:
     """(round trips/s, CPU us per round trip of both processes) of a bare pymavlink HIL_SENSOR /
-    HIL_ACTUATOR_CONTROLS ping-pong with a second process."""
+    HIL_ACTUATOR_CONTROLS ping-pong with a second process; spin: both poll for each datagram up to spin s
+    before sleeping for it (as the lockstep links do)."""
     from pymavlink.dialects.v20 import common as mavlink
 
-    proc = subprocess.Popen([sys.executable, __file__, "--echo"], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, __file__, "--echo", "--echo-spin", repr(spin)],
+                            stdout=subprocess.PIPE, text=True)
     try:
         line = proc.stdout.readline()
         port = int(line.split()[-1])
@@ -118,7 +143,7 @@ def ceiling_rate(steps: int) -> tuple[float, float]:
             mav.seq = (mav.seq + 1) % 256
             got = False
             while not got:
-                for msg in mav.parse_buffer(sock.recv(65535)) or []:
+                for msg in mav.parse_buffer(_polled_recv(sock, spin)) or []:
                     got = got or (msg.get_msgId() == mavlink.MAVLINK_MSG_ID_HIL_ACTUATOR_CONTROLS
                                   and msg.time_usec == t)
         rate = steps / (time.perf_counter() - t0)
@@ -211,19 +236,24 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=20000)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--echo", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--echo-spin", type=float, default=0.0, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.echo:
-        echo_server()
+        echo_server(args.echo_spin)
         return 0
     full_kinds = ("full", "sitl_cpu", "client_cpu", "sitl_sys", "client_sys", "sitl_vol", "sitl_invol")
     kinds = ("physics", "physics_cpu", *full_kinds)
-    names = ["ceiling", "ceiling_cpu"] + [f"{k} {v}" for v in VEHICLES for k in kinds]
+    names = ["ceiling", "ceiling_cpu", "ceiling_polled", "ceiling_polled_cpu"]
+    names += [f"{k} {v}" for v in VEHICLES for k in kinds]
     names += [f"nospin_{k} {v}" for v in VEHICLES for k in ("full", "sitl_cpu", "client_cpu")]
     results: dict[str, list[float]] = {k: [] for k in names}
     for i in range(args.repeats):
         rate, cpu = ceiling_rate(args.steps)
         results["ceiling"].append(rate)
         results["ceiling_cpu"].append(cpu)
+        rate, cpu = ceiling_rate(args.steps, LOCKSTEP_SPIN_S)
+        results["ceiling_polled"].append(rate)
+        results["ceiling_polled_cpu"].append(cpu)
         for v in VEHICLES:
             physics, physics_cpu = physics_rate(args.steps, v)
             results[f"physics {v}"].append(physics)
@@ -240,10 +270,14 @@ def main() -> int:
     print(f"cpu cores: {os.cpu_count()}, steps per run: {args.steps}, medians of {args.repeats} runs")
     print(f"messaging ceiling (bare pymavlink ping-pong, 2 processes): {med['ceiling']:,.0f} round trips/s "
           f"({1e6 / med['ceiling']:.1f} us); CPU per round trip, both processes: {med['ceiling_cpu']:.0f} us")
+    print(f"  the same, both polling for each datagram up to {LOCKSTEP_SPIN_S * 1e6:.0f} us before sleeping "
+          f"(as the lockstep links): {med['ceiling_polled']:,.0f} round trips/s, CPU "
+          f"{med['ceiling_polled_cpu']:.0f} us; the floor's ceiling is the faster of the two")
+    ceiling = max(med["ceiling"], med["ceiling_polled"])
     ok = True
     for v in VEHICLES:
         physics, full = med[f"physics {v}"], med[f"full {v}"]
-        ratio = full / med["ceiling"]
+        ratio = full / ceiling
         print(f"{v}:")
         print(f"  physics alone (Quadrotor.step + SensorModel.sample): {physics:,.0f} steps/s "
               f"({1e6 / physics:.1f} us/step); by CPU time {med[f'physics_cpu {v}']:,.0f} steps/s")
