@@ -56,6 +56,7 @@ class MessageSpec:
     crc_extra: int
     size: int
     unpack: Callable[[bytes], tuple]
+    unpack_from: Callable[[bytes, int], tuple]  # (buffer, offset): a payload of exactly `size` bytes in place
     payload_of: Callable[[Any], bytes] | None  # None: class has char fields, packed through pymavlink
     values_of: Callable[[Any], tuple] | None  # values in wire order (as unpack gives); None: char fields
     build: Callable[..., Any]  # (unpacked tuple, header, msgbuf, payload, crc, signed, link_id) -> message
@@ -187,6 +188,7 @@ def _make_spec(cls: type) -> MessageSpec:
         crc_extra=cls.crc_extra,
         size=cls.unpacker.size,
         unpack=cls.unpacker.unpack,
+        unpack_from=cls.unpacker.unpack_from,
         payload_of=payload_of,
         values_of=values_of,
         build=build,
@@ -361,8 +363,11 @@ def parse_datagram(
 
 def unpack_frame(frame: bytes, header_len: int, signature_len: int, spec: MessageSpec) -> tuple:
     """The payload values of a checked frame in WIRE order (ordered_fieldnames, arrays flattened)."""
-    payload = frame[header_len : len(frame) - 2 - signature_len]
+    end = len(frame) - 2 - signature_len
     size = spec.size
+    if end - header_len == size:  # not truncated: read in place
+        return spec.unpack_from(frame, header_len)
+    payload = frame[header_len:end]
     if len(payload) < size:
         payload = payload + bytes(size - len(payload))
     elif len(payload) > size:

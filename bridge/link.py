@@ -4,6 +4,7 @@ a received datagram parsed, bad bytes dropped and counted (never raised)."""
 from __future__ import annotations
 
 import errno
+import os
 import re
 import select
 import socket
@@ -26,6 +27,10 @@ _DONTWAIT = socket.MSG_DONTWAIT
 # Waits at least this long (s) block in recvfrom under SO_RCVTIMEO; shorter ones poll() first, as the kernel
 # rounds SO_RCVTIMEO up to its tick (4 ms at HZ=250), too coarse for the real-time pacing's sub-step waits.
 RCVTIMEO_MIN_S = 0.05
+# A lockstep peer answers within tens of microseconds. Sleeping in the kernel for that answer costs a wake-up
+# (on an idle core of a virtual machine: the hypervisor's too); polling for it first keeps the process on its
+# core. sched_yield() between polls hands the core to the peer when both share it.
+LOCKSTEP_SPIN_S = 200e-6
 _TIMEVAL = struct.Struct("@ll")  # struct timeval (tv_sec, tv_usec) on LP64 Linux
 
 
@@ -135,6 +140,7 @@ class UdpLink:
         self._poller = select.poll()
         self._poller.register(self._sock.fileno(), select.POLLIN)
         self._rcvtimeo = 0.0  # s, the socket's SO_RCVTIMEO (0: none)
+        self.spin_s = 0.0  # s wall: poll this long without sleeping before a blocking wait (LOCKSTEP_SPIN_S)
         self._owns_tlog = tlog is not None and not isinstance(tlog, TlogWriter)
         try:
             self.tlog = open_tlog(tlog)
@@ -191,6 +197,10 @@ class UdpLink:
 
     # -- receiving -----------------------------------------------------------------------------------
     def _datagram(self, timeout: float | None) -> tuple[bytes, tuple[str, int]] | None:
+        if self.spin_s > 0.0 and (timeout is None or timeout > 0.0):
+            got = self._spin(self.spin_s if timeout is None or timeout > self.spin_s else timeout)
+            if got is not None:
+                return got
         try:
             if timeout is None or timeout >= RCVTIMEO_MIN_S:
                 limit = 0.0 if timeout is None else timeout
@@ -202,6 +212,19 @@ class UdpLink:
             return self._sock.recvfrom(MAX_DATAGRAM, _DONTWAIT)
         except (BlockingIOError, ConnectionError):  # ConnectionError: an ICMP unreachable came back
             return None
+
+    def _spin(self, seconds: float) -> tuple[bytes, tuple[str, int]] | None:
+        """The next datagram if one comes within seconds (wall), polled without sleeping; else None."""
+        recvfrom, end = self._sock.recvfrom, time.monotonic() + seconds
+        while True:
+            try:
+                return recvfrom(MAX_DATAGRAM, _DONTWAIT)
+            except BlockingIOError:
+                if time.monotonic() >= end:
+                    return None
+                os.sched_yield()
+            except ConnectionError:  # an ICMP unreachable came back
+                return None
 
     def _set_rcvtimeo(self, seconds: float) -> None:
         """Bound a blocking recvfrom to seconds (0: no bound), as the kernel's SO_RCVTIMEO (a timeval)."""

@@ -15,7 +15,7 @@ from typing import Any
 
 from bridge.errors import UserError
 from bridge.framing import Framer, kind
-from bridge.link import Endpoint, UdpLink, parse_endpoint
+from bridge.link import LOCKSTEP_SPIN_S, Endpoint, UdpLink, parse_endpoint
 from bridge.messages import (
     ARMED_MODE,
     LOCKSTEP_FLAG,
@@ -61,11 +61,14 @@ class LockstepClient:
         timeout: float = 1.0,
         system_id: int = 1,
         component_id: int = 1,
+        spin: float = LOCKSTEP_SPIN_S,
     ):
         self.endpoint = hil if isinstance(hil, Endpoint) else parse_endpoint(hil)
         if not timeout > 0:
             raise UserError(f"lockstep timeout must be > 0 s (got {timeout})")
         self.timeout = float(timeout)
+        if not 0.0 <= spin <= 1.0:
+            raise UserError(f"lockstep spin must be 0..1 s (got {spin})")
         self.link = UdpLink(
             local=None,
             remote=self.endpoint,
@@ -74,6 +77,7 @@ class LockstepClient:
             signing=_as_signing(signing),
             tlog=str(tlog) if isinstance(tlog, Path) else tlog,
         )
+        self.link.spin_s = float(spin)  # s wall: poll for the next step this long before sleeping for it
         self.assembler = ObservationAssembler()
         # HIL_ACTUATOR_CONTROLS packed straight from floats (wire order: time_usec, flags, controls[16], mode)
         self._framer = Framer(system_id, component_id, self.link, self.link.signing)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from bridge.framing import decode_frame, spec_for
+from bridge.framing import decode_frame, spec_for, unpack_frame
 from bridge.rotations import euler_from_quaternion  # noqa: F401 - also used by importers of messages
 
 G0 = 9.80665  # m/s^2, the g PX4 uses to clamp accelerometer readings
@@ -319,6 +319,11 @@ def sanitize_throttles(controls) -> tuple[tuple[float, float, float, float], int
 
     The one rule for both seats of the HIL link: NaN and +-inf are 0 (motor off), the rest clipped to [0, 1].
     """
+    if len(controls) >= 4:  # the common case first: four Python floats already in [0, 1] (NaN fails <=)
+        a, b, c, d = controls[0], controls[1], controls[2], controls[3]
+        if (type(a) is float and type(b) is float and type(c) is float and type(d) is float
+                and 0.0 <= a <= 1.0 and 0.0 <= b <= 1.0 and 0.0 <= c <= 1.0 and 0.0 <= d <= 1.0):
+            return (a, b, c, d), 0, 0
     nonfinite = 0
     clamped = 0
     out = []
@@ -537,11 +542,12 @@ class ObservationAssembler:
                 except Exception:  # a payload pymavlink cannot instantiate: not part of any step, dropped
                     pass
                 continue
-            payload = frame[header_len : len(frame) - 2 - signature_len]
+            end = len(frame) - 2 - signature_len
             size = spec.size
-            if len(payload) != size:
-                payload = payload + bytes(size - len(payload)) if len(payload) < size else payload[:size]
-            v = spec.unpack(payload)
+            if end - header_len == size:  # not truncated: read in place
+                v = spec.unpack_from(frame, header_len)
+            else:
+                v = unpack_frame(frame, header_len, signature_len, spec)
             if msg_id == ID_RAW_RPM:
                 self._rpm.append(v)
             elif msg_id == ID_HIL_SENSOR:

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 from bridge.airframe import TURBULENCE_PRESETS
 from bridge.errors import UserError
+from bridge.link import LOCKSTEP_SPIN_S
 
 if TYPE_CHECKING:
     from bridge.airframe import WindConfig
@@ -73,6 +74,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="start rotor speed in rad/s, or 'hover' (trimmed hover, e.g. with --ground none)")
     p.add_argument("--lockstep-timeout", type=float, default=1.0, metavar="S",
                    help="lockstep: wall seconds to wait for a reply before the failsafe (default 1)")
+    p.add_argument("--lockstep-spin-us", type=float, default=LOCKSTEP_SPIN_S * 1e6, metavar="US",
+                   help="lockstep: microseconds to poll for a reply before sleeping for it (default "
+                        f"{LOCKSTEP_SPIN_S * 1e6:g}; 0: sleep at once, for a machine whose cores are busy)")
     p.add_argument("--realtime-timeout", type=float, default=0.2, metavar="S",
                    help="realtime: simulated seconds without commands before the failsafe (default 0.2)")
     p.add_argument("--status-interval", type=float, default=5.0, metavar="S",
@@ -110,6 +114,8 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
     for flag, value in timeouts:
         if not (math.isfinite(value) and value > 0):
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
+    if not (math.isfinite(args.lockstep_spin_us) and 0 <= args.lockstep_spin_us <= 1e6):
+        raise UserError(f"--lockstep-spin-us must be 0..1000000 microseconds, got {args.lockstep_spin_us}")
     if not (math.isfinite(args.status_interval) and args.status_interval >= 0):
         raise UserError(f"--status-interval must be >= 0 seconds, got {args.status_interval}")
     if not (math.isfinite(args.max_rtf) and args.max_rtf >= 0):
@@ -135,6 +141,7 @@ def options_from_args(args: argparse.Namespace) -> SitlOptions:
         signing_key=load_key(args.signing_key) if args.signing_key else None,
         initial_rotor_speed=rotor_speed,
         lockstep_timeout=args.lockstep_timeout,
+        lockstep_spin=args.lockstep_spin_us * 1e-6,
         realtime_timeout=args.realtime_timeout,
         status_interval=args.status_interval,
         max_steps=args.max_steps,

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TextIO
 
 from bridge.framing import unpack_frame
-from bridge.link import Endpoint, UdpLink
+from bridge.link import LOCKSTEP_SPIN_S, Endpoint, UdpLink
 from bridge.messages import Heartbeat, HilActuatorControls, mavlink, sanitize_throttles
 from bridge.shutdown import StopSignals
 from bridge.signing import Signing
@@ -52,6 +52,7 @@ class SitlOptions:
     signing_key: bytes | None = None
     initial_rotor_speed: float = 0.0  # rad/s, all four rotors
     lockstep_timeout: float = 1.0  # s wall: lockstep wait bound before the failsafe
+    lockstep_spin: float = LOCKSTEP_SPIN_S  # s wall: lockstep, poll for a reply this long before sleeping
     realtime_timeout: float = 0.2  # s simulated: realtime silence before the failsafe
     status_interval: float = 5.0  # s wall; 0: no periodic status line
     max_steps: int | None = None
@@ -212,10 +213,17 @@ class SitlServer:
 
         UDP may lose a datagram (even on loopback, under load): the last step is re-sent every 0.1 s wall
         while its reply is missing, so a companion that answers every HIL_SENSOR recovers before the bound.
-        (Polling for the reply instead of sleeping was measured: no gain, as the kernel runs a process woken
-        by a local UDP datagram on the sender's core.)
+        The reply is polled for up to lockstep_spin before the process sleeps for it (UdpLink.spin_s).
         """
         link = self.link
+        link.spin_s = self.options.lockstep_spin
+        try:
+            self._lockstep_loop(link)
+        finally:
+            link.spin_s = 0.0
+
+    def _lockstep_loop(self, link: UdpLink) -> None:
+        """The lockstep loop of _serve_lockstep."""
         timeout = self.options.lockstep_timeout
         monotonic = time.monotonic
         sent_at = monotonic()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import select
+import threading
 import time
 
 import numpy as np
@@ -244,3 +245,22 @@ def test_every_common_message_gets_a_spec_on_first_use_and_unknown_ids_none():
         assert spec is not None and spec.cls is cls and spec.msg_id == msg_id
         assert spec_for(cls) is spec and SPECS_BY_ID[msg_id] is spec
     assert spec_for_id(0xFFFFFF) is None
+
+
+def test_a_polling_link_receives_what_comes_during_and_after_its_poll():
+    server, client = _pair()
+    try:
+        server.spin_s = 0.002  # poll 2 ms before sleeping
+        client.send([_sensor(4000)])
+        time.sleep(0.01)
+        assert [m.time_usec for m in server.recv(1.0)] == [4000]  # queued before the poll
+        assert server.recv(0.001) == [] and server.recv(0.05) == []  # nothing comes: both bounds end it
+        # sent after the poll ends: the sleep gets it
+        late = threading.Timer(0.03, lambda: client.send([_sensor(8000)]))
+        late.start()
+        start = time.monotonic()
+        assert [m.time_usec for m in server.recv(2.0)] == [8000]
+        assert time.monotonic() - start < 1.0
+    finally:
+        server.close()
+        client.close()

@@ -228,3 +228,57 @@ def test_observation_assembler_does_not_mix_steps():
     assert asm.feed(old[:-1]) == []  # step 4000 without its HIL_SENSOR
     [obs] = asm.feed(new_sensor)
     assert obs.time_usec == 8000 and obs.truth is None  # the 4000 truth is not passed off as 8000's
+
+
+# ---- fast paths of the lockstep hot loop -------------------------------------------------------------
+def _sanitize_reference(controls):
+    """The throttle rule written plainly: NaN/inf -> 0 (counted), others clipped to [0, 1] (counted)."""
+    out, nonfinite, clamped = [], 0, 0
+    for value in list(controls)[:4]:
+        v = float(value)
+        if not math.isfinite(v):
+            nonfinite, v = nonfinite + 1, 0.0
+        elif not 0.0 <= v <= 1.0:
+            clamped, v = clamped + 1, min(max(v, 0.0), 1.0)
+        out.append(v)
+    out += [0.0] * (4 - len(out))
+    return tuple(out), nonfinite, clamped
+
+
+def test_sanitize_throttles_fast_path_keeps_the_rule():
+    """In-range float throttles take a shortcut; every input (NaN, inf, out of range, ints, numpy scalars,
+    -0.0, short or long lists) must give the plain rule's values, types and counts."""
+    rng = np.random.default_rng(13)
+    specials = [math.nan, math.inf, -math.inf, -0.0, 0.0, 1.0, 1.0000001, -1e-300, 2, 0, np.float64(0.5),
+                np.float32(0.25), True]
+    for k in range(3000):
+        n = 4 if k % 10 else int(rng.integers(0, 7))
+        values = [float(rng.uniform(-0.2, 1.2)) if rng.random() < 0.8
+                  else specials[int(rng.integers(len(specials)))] for _ in range(n)]
+        got = M.sanitize_throttles(values)
+        want = _sanitize_reference(values)
+        assert got[1:] == want[1:], values
+        assert [(type(v), repr(v)) for v in got[0]] == [(type(v), repr(v)) for v in want[0]], values
+
+
+def test_unpack_frame_in_place_equals_padded_payload():
+    """unpack_frame reads a full-length payload in place and pads a truncated one: both give the values of
+    the payload pymavlink would decode (signed frames too)."""
+    from bridge.framing import spec_for, unpack_frame
+    from bridge.signing import Signing
+
+    rng = np.random.default_rng(4)
+    signing = Signing(bytes(range(32)))
+    for k in range(200):
+        values = (int(rng.integers(0, 2**40)), float(rng.normal()), float(rng.normal()) * (k % 3 != 0),
+                  0.0 if k % 2 else float(rng.normal()))
+        last = float(rng.normal()) if k % 2 else 0.0  # non-zero: a full payload, read in place
+        msg = M.WindCov(values[0], values[1], values[2], values[3], 0.0, 0.0, 0.0, 0.0, last)
+        frame = pack_frame(msg, k & 0xFF, 1, 51, signing if k % 4 < 2 else None)
+        [(spec, raw, header_len, signature_len)] = split_datagram(frame, LinkStats())
+        full = len(raw) - header_len - 2 - signature_len == spec.size
+        assert full == bool(last)
+        assert spec is spec_for(M.WindCov)
+        decoded = mavlink.MAVLink(None).decode(bytearray(raw))
+        assert unpack_frame(raw, header_len, signature_len, spec) == tuple(
+            getattr(decoded, n) for n in M.WindCov.ordered_fieldnames)

@@ -133,3 +133,12 @@ def test_bad_wind_flags_exit_2(flags, expect):
     run = subprocess.run([sys.executable, "-m", "quadsr.cli", "sitl", "--no-gcs", "--hil", "udp:127.0.0.1:0",
                           *flags], capture_output=True, text=True, timeout=60, cwd=REPO)
     assert run.returncode == 2 and expect in run.stderr and "Traceback" not in run.stderr, run.stderr
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "2e6"])
+def test_a_bad_lockstep_spin_exits_2(value):
+    argv = ["sitl", "--no-gcs", "--hil", "udp:127.0.0.1:0", f"--lockstep-spin-us={value}"]
+    run = subprocess.run([sys.executable, "-m", "quadsr.cli", *argv], capture_output=True, text=True,
+                         timeout=60, cwd=REPO)
+    assert run.returncode == 2 and "--lockstep-spin-us must be" in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr
