@@ -13,7 +13,9 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
 5. genetic programming (pyoperon), seeded with the primitives and the picked model's features, fits the
    picked model's residual for a fixed number of generations (always: no threshold gates it); the front's
    expressions come back expanded into their additive terms, which join the picked model's features in one
-   more sparse fit (refit, pruned and identified term by term like any feature).
+   more sparse fit (refit, pruned and identified term by term like any feature);
+6. the pick is polished by term substitution (DiscoveryEngine._polish): one term swapped for one pool
+   feature at a time, kept when the pick rows' loss improves and the pick's identification rules hold.
 The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
 dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
 Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
@@ -46,7 +48,7 @@ from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
 from identification.model_file import ExpressionError, complexity, parse_expression
-from identification.pareto import attach_holdout, select
+from identification.pareto import admissible, attach_holdout, select
 from identification.replacement import replacements
 from identification.robust_weights import huber_weights
 from identification.sparse import (
@@ -115,8 +117,10 @@ class DiscoveryEngine:
         settings: DiscoverySettings | None = None,
         sparse: SparseSettings | None = None,
         name: str = "discovery",
+        selection: SelectionSettings | None = None,
     ):
         self.settings = settings or DiscoverySettings()
+        self.selection = selection or SelectionSettings()  # the final pick's rules (the polish keeps them)
         check_settings(self.settings)
         # no simpler-term swaps: over a grown pool they multiply the candidates for little gain
         self.sparse = dataclasses.replace(
@@ -268,9 +272,117 @@ class DiscoveryEngine:
             attach_holdout(gp, Xh, yh, loss, weak_h)
             candidates += gp
             self.timings["operon"] = time.perf_counter() - op_start
+        if candidates and s.polish_passes > 0:
+            polish_start = time.perf_counter()
+            pick = select(candidates, self.selection, scale=scale)
+            candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale)
+            self.timings["polish"] = time.perf_counter() - polish_start
         if progress:
             progress(1.0, f"{len(candidates)} candidates")
         return candidates
+
+    def _polish(
+        self,
+        pick: Candidate,
+        pool: list[int],
+        columns: _Columns,
+        F: np.ndarray,
+        y: np.ndarray,
+        X: np.ndarray,
+        Xh: np.ndarray,
+        yh: np.ndarray,
+        loss: str,
+        scale: float,
+    ) -> list[Candidate]:
+        """Term-substitution polish of the pick: a local search that swaps one term of the picked model for
+        one pool feature at a time. The sparse paths grow or shrink a model one term at a time along a
+        path; a model whose term is a near-copy of the true one (wz^2 |wz| for wz^2, both even in wz) is a
+        local optimum they never leave, since the true term only helps once the copy is out (fang-chen-aero's
+        dwy: no candidate of the paths held wz^2, yet swapping it in was better on the pick rows).
+        Each pass ranks every (term, pool feature) swap by the least-squares residual of the swapped model on
+        the fit rows (term_substitutions: one projection of the pool, no refit), refits the best
+        `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit) and
+        keeps the one with the lowest pick-row loss when it beats the current model's (_better) and passes
+        the pick's identification rules (t ratio >= min_t, VIF <= max_vif); at most `polish_passes` passes,
+        stopping at the first that finds no better swap. Budgets are counts; deterministic (stable orders).
+        F, y: the fit rows' feature matrix and target (weak rows when the weak form is on); the candidates
+        returned (each accepted swap's model) join the others for identify's pick."""
+        s = self.settings
+        prims = list(columns.space.primitives)
+        terms = _product_factors(pick.expression)
+        if not terms or pick.holdout_loss is None or not np.isfinite(pick.holdout_loss):
+            return []
+        weak, weak_h = self.weak or (None, None)
+        lag = self._weak_lag()
+        exprs = columns.space.expressions
+        # the constant stays in (or out) as in the pick: a swap changes one term, not the constant's
+        constant = any(t.is_number for t in sympy.Add.make_args(pick.expression))
+        out: list[Candidate] = []
+        current = pick
+        for _ in range(s.polish_passes):
+            P = columns.primitives(X)
+            M = _lambdify(prims, terms)(P)
+            if weak is not None:
+                M = np.asarray(weak @ M)
+            free = [i for i in pool if exprs[i] not in terms]
+            if not free:
+                break
+            ranked = term_substitutions(M, F[:, free], y)[: s.polish_tries]
+            tried: list[Candidate] = []
+            for j, f, _rss in ranked:
+                shapes = [*terms[:j], exprs[free[f]], *terms[j + 1:]]
+                c = self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant)
+                if c is not None:
+                    tried.append(c)
+            attach_holdout(tried, Xh, yh, loss, weak_h)
+            ok = [c for c in tried if admissible(c, self.selection) and _better(c, current, scale)]
+            if not ok:
+                break
+            current = min(ok, key=lambda c: (c.holdout_loss, c.complexity))
+            out.append(current)
+            terms = _product_factors(current.expression)
+        self.stats["polish_swaps"] = len(out)
+        return out
+
+    def _linear_candidate(
+        self,
+        shapes: list[sympy.Expr],
+        prims: list[str],
+        columns: _Columns,
+        X: np.ndarray,
+        y: np.ndarray,
+        loss: str,
+        lag: int | None,
+        constant: bool = True,
+    ) -> Candidate | None:
+        """The model [constant +] sum c_k shapes_k (expressions in the primitive names) fitted to the fit rows
+        (X (N,16); y (N,), weak rows when the weak form is on) as the sparse candidates are: least squares,
+        then the absolute-error refit; None when a column is not finite."""
+        fn = _lambdify(prims, shapes)
+        cols = fn(columns.primitives(X))
+        if self.weak is not None and self.weak[0] is not None:
+            cols = np.asarray(self.weak[0] @ cols)
+        theta = np.hstack([np.ones((len(y), 1)), cols])
+        if not np.all(np.isfinite(theta)):
+            return None
+        problem = LeastSquaresProblem(theta, y)
+        active = np.ones(theta.shape[1], bool)
+        active[0] = constant
+        coef = problem.solve(active)
+        if loss == "absolute" and theta.shape[1] <= self.sparse.irls_max_terms:
+            coef = problem.l1_refit(active, coef, self.sparse.irls_iterations)
+        exprs = [sympy.Integer(1), *shapes]
+        feats = [Feature(f"x{k}", e, "const" if k == 0 else "polish") for k, e in enumerate(exprs)]
+        const, cf = float(coef[0]), np.asarray(coef[1:])
+        c = Candidate(
+            expression=sparse_expression(feats, coef),
+            complexity=sum(complexity(e) + (1 if k == 0 else 2) for k, e in enumerate(exprs)) + 1,
+            train_loss=loss_fn(y, theta @ coef, loss),
+            engine=f"{self.name}(+polish)",
+            predict=lambda X_, cf=cf, k=const: fn(columns.primitives(X_)) @ cf + k,
+        )
+        c.weakest_t, c.largest_vif = term_identification(theta[:, active], y, lag)
+        return c
 
     def _loss(self, y: np.ndarray, pred: np.ndarray, loss: str) -> float:
         """Training loss of point predictions (N,) against point targets y, in the weak form when it is on."""
@@ -715,6 +827,50 @@ def _swap_in_combinations(
         A[:, k + 1] = v
         swapped.append(f)
     return swapped
+
+
+def term_substitutions(
+    M: np.ndarray, C: np.ndarray, y: np.ndarray, tol: float = 1e-10
+) -> list[tuple[int, int, float]]:
+    """Every swap of one model term for one candidate feature, ranked by the swapped model's least-squares
+    residual sum of squares on y (N,) (with a constant): [(term j, candidate f, RSS)], lowest first (stable).
+    M (N,k): the model's term columns; C (N,m): the candidates'. One QR of the model and one projection of
+    the candidates serve every swap: with u_j the unit direction of term j orthogonal to the other terms
+    (a column of Q R^-T), removing j adds (u_j.y)^2 to the RSS and u_j (u_j.c) to each candidate's part
+    outside the model, so RSS(j -> f) = RSS + (u_j.y)^2 - (r.c_perp + (u_j.y)(u_j.c))^2 / (|c_perp|^2 +
+    (u_j.c)^2), r the model's residual. A candidate (numerically) inside the model's span (a copy of a
+    term, or a combination of them: no new direction), or not finite, is left out. Units: y's squared."""
+    n, k = M.shape
+    A = np.hstack([np.ones((n, 1)), M])
+    q, r_ = np.linalg.qr(A)
+    if k == 0 or np.min(np.abs(np.diag(r_))) <= 1e-12 * np.max(np.abs(np.diag(r_))):
+        return []
+    U = q @ np.linalg.inv(r_).T[:, 1:]  # column j: orthogonal to every other column of A
+    U /= np.linalg.norm(U, axis=0)
+    finite = np.all(np.isfinite(C), axis=0)
+    C = np.where(finite, C, 0.0)
+    resid = y - q @ (q.T @ y)
+    rss = float(resid @ resid)
+    Cp = C - q @ (q.T @ C)
+    num0 = resid @ Cp  # (m,)
+    den0 = np.sum(Cp * Cp, axis=0)
+    uy = U.T @ y  # (k,)
+    uc = U.T @ C  # (k, m)
+    num = num0[None, :] + uy[:, None] * uc
+    den = den0[None, :] + uc * uc
+    size = np.sum(C * C, axis=0)
+    usable = (finite & (den0 > tol * np.maximum(size, 1e-300)))[None, :] & (den > 0.0)
+    with np.errstate(all="ignore"):
+        new = rss + (uy * uy)[:, None] - np.where(usable, num * num / np.where(usable, den, 1.0), 0.0)
+    new = np.where(usable, new, np.inf)
+    order = np.argsort(new, axis=None, kind="stable")
+    out = []
+    for idx in order:
+        j, f = divmod(int(idx), new.shape[1])
+        if not np.isfinite(new[j, f]):
+            break
+        out.append((j, f, float(new[j, f])))
+    return out
 
 
 def _model_t(F: np.ndarray, terms: np.ndarray, y: np.ndarray) -> dict[int, float]:

@@ -56,7 +56,7 @@ def make_engine(name: str, settings: EngineSettings | None = None) -> Engine:
     if name in ("default", "discovery"):
         from identification.discovery import DiscoveryEngine
 
-        return DiscoveryEngine(settings.discovery, settings.sparse, name=name)
+        return DiscoveryEngine(settings.discovery, settings.sparse, name=name, selection=settings.selection)
     if name == "sparse":
         from identification.sparse import SparseEngine
 

@@ -101,6 +101,10 @@ class DiscoverySettings:
     operon_max_length: int = 15
     operon_optimizer_iterations: int = 5
     operon_threads: int = 1
+    # term-substitution polish of the pick (identification.discovery DiscoveryEngine._polish): at most this
+    # many passes, each refitting the best polish_tries single-term swaps (ranked by least squares); 0: off
+    polish_passes: int = 3
+    polish_tries: int = 12
 
 
 @dataclass(frozen=True)
