@@ -102,8 +102,10 @@ class DiscoverySettings:
     operon_optimizer_iterations: int = 5
     operon_threads: int = 1
     # term-substitution polish of the pick (identification.discovery DiscoveryEngine._polish): at most this
-    # many passes, each refitting the best polish_tries single-term swaps (ranked by least squares); 0: off
-    polish_passes: int = 3
+    # many passes, each refitting the best polish_tries single-term swaps (ranked by least squares); 0: off.
+    # Off by default: measured on the same flights it fixed sitl fang-chen-aero's structure (139/0/0) but
+    # took noise-level swaps elsewhere (closed-loop aero 17 -> 19 extra, realistic-sensor aero 11 -> 23)
+    polish_passes: int = 0
     polish_tries: int = 12
 
 

@@ -10,6 +10,7 @@ from identification.body_frame import PRIMITIVE_SYMBOLS
 from identification.discovery import DiscoveryEngine, _Columns, term_substitutions
 from identification.effects_physics import Effects, flight_rows
 from identification.engine import split_holdout
+from identification.engine_settings import DiscoverySettings
 from identification.pareto import attach_holdout
 
 
@@ -34,7 +35,7 @@ def test_polish_swaps_a_near_copy_for_the_true_term() -> None:
     the true structure, coefficients recovered."""
     xi, u, _ = flight_rows(1500, 0, "fang-chen-buaa", Effects())
     X = np.hstack([xi, u])
-    engine = DiscoveryEngine()
+    engine = DiscoveryEngine(DiscoverySettings(polish_passes=3))
     space = engine.build_space(X)
     columns = _Columns(space)
     wx, wy, wz = (PRIMITIVE_SYMBOLS[n] for n in ("wx", "wy", "wz"))
