@@ -56,6 +56,7 @@ from identification.self_feedback import mark_self_feedback
 from identification.weak_form import WeakSettings, weak_rows
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
+R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 
 
 def body_collinearity(expr: sympy.Expr, X: np.ndarray,
@@ -66,7 +67,6 @@ def body_collinearity(expr: sympy.Expr, X: np.ndarray,
     shapes = [s for s in term_shapes(expr) if s != 1]
     cols = np.column_stack([body_values(s, X) for s in shapes]) if shapes else np.zeros((len(X), 0))
     return terms_collinearity(cols, [expression_to_string(s) for s in shapes], candidates)
-R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 
 
 def parse_targets(text: str | Sequence[str] | None) -> tuple[str, ...]:
