@@ -47,7 +47,6 @@ def _polynomial_rows(n: int, seed: int) -> Dataset:
 
 
 def test_pysindy_poly2_recovers_a_sparse_polynomial_with_one_blas_thread():
-    pytest.importorskip("pysindy")
     features = discovery.polynomial_features(2)
     assert len(features) == 153  # 1 + 16 + 16*17/2
     train = _polynomial_rows(1500, seed=3)
