@@ -105,40 +105,28 @@ class HilEncoder:
 
     def step_frames(self, quad: Quadrotor, s: SensorFrame) -> list[bytes]:
         """The frames of the current step, HIL_SENSOR last; all stamped with the step's time_usec."""
-        # The int conversions are written inline for the common in-range case (a call each costs as much as
-        # the conversion); out of range, NaN and inf take int16_of/uint16_of/int32_of, so results are equal.
         t = quad.time_usec
         x, y, z, vx, vy, vz, qw, qx, qy, qz, p, q, r, w1, w2, w3, w4 = quad.state  # one read of 17 floats
         lat, lon, alt = self.frame.to_geodetic(x, y, z)
         fx, fy, fz = quad.specific_force_body()
-        speed = 100.0 * math.sqrt(vx * vx + vy * vy + vz * vz)  # cm/s over ground: both airspeeds
-        speed = round(speed) if 0.0 < speed < 65535.0 else uint16_of(speed)
-        lat, lon, alt_mm = lat * 1e7, lon * 1e7, alt * 1000.0
-        vx_cm, vy_cm, vz_cm = vx * 100.0, vy * 100.0, vz * 100.0
-        fx, fy, fz = fx * MG_PER_M_S2, fy * MG_PER_M_S2, fz * MG_PER_M_S2
-        hsq_id, hsq_extra, hsq_pack = self._hsq
-        lpn_id, lpn_extra, lpn_pack = self._lpn
-        rpm_id, rpm_extra, rpm_pack = self._rpm
+        speed = uint16_of(100.0 * math.sqrt(vx * vx + vy * vy + vz * vz))  # cm/s over ground: both airspeeds
+        msg_id, extra, pack = self._hsq
         parts = [
-            (hsq_id, hsq_extra, hsq_pack(
+            (msg_id, extra, pack(
                 t, qw, qx, qy, qz, p, q, r,
-                round(lat) if -LAT_E7_MAX < lat < LAT_E7_MAX else int32_of(lat, -LAT_E7_MAX, LAT_E7_MAX),
-                round(lon) if -LON_E7_MAX < lon < LON_E7_MAX else int32_of(lon, -LON_E7_MAX, LON_E7_MAX),
-                round(alt_mm) if INT32_MIN < alt_mm < INT32_MAX else int32_of(alt_mm, INT32_MIN, INT32_MAX),
-                round(vx_cm) if -32768.0 < vx_cm < 32767.0 else int16_of(vx_cm),
-                round(vy_cm) if -32768.0 < vy_cm < 32767.0 else int16_of(vy_cm),
-                round(vz_cm) if -32768.0 < vz_cm < 32767.0 else int16_of(vz_cm),
-                speed, speed,
-                round(fx) if -32768.0 < fx < 32767.0 else int16_of(fx),
-                round(fy) if -32768.0 < fy < 32767.0 else int16_of(fy),
-                round(fz) if -32768.0 < fz < 32767.0 else int16_of(fz),
+                int32_of(lat * 1e7, -LAT_E7_MAX, LAT_E7_MAX), int32_of(lon * 1e7, -LON_E7_MAX, LON_E7_MAX),
+                int32_of(alt * 1000.0, INT32_MIN, INT32_MAX),
+                int16_of(vx * 100.0), int16_of(vy * 100.0), int16_of(vz * 100.0), speed, speed,
+                int16_of(fx * MG_PER_M_S2), int16_of(fy * MG_PER_M_S2), int16_of(fz * MG_PER_M_S2),
             )),
-            (lpn_id, lpn_extra, lpn_pack((t // 1000) & 0xFFFFFFFF, x, y, z, vx, vy, vz)),
-            (rpm_id, rpm_extra, rpm_pack(w1 * RAD_S_TO_RPM, 0)),
-            (rpm_id, rpm_extra, rpm_pack(w2 * RAD_S_TO_RPM, 1)),
-            (rpm_id, rpm_extra, rpm_pack(w3 * RAD_S_TO_RPM, 2)),
-            (rpm_id, rpm_extra, rpm_pack(w4 * RAD_S_TO_RPM, 3)),
         ]
+        msg_id, extra, pack = self._lpn
+        parts.append((msg_id, extra, pack((t // 1000) & 0xFFFFFFFF, x, y, z, vx, vy, vz)))
+        msg_id, extra, pack = self._rpm
+        parts.append((msg_id, extra, pack(w1 * RAD_S_TO_RPM, 0)))
+        parts.append((msg_id, extra, pack(w2 * RAD_S_TO_RPM, 1)))
+        parts.append((msg_id, extra, pack(w3 * RAD_S_TO_RPM, 2)))
+        parts.append((msg_id, extra, pack(w4 * RAD_S_TO_RPM, 3)))
         if s.new_gps:
             g = s.gps
             vn, ve, vd = g.vel
