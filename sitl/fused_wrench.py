@@ -18,29 +18,49 @@ from bridge.vehicle import VehicleConfig
 from sitl.rotor_geometry import RotorGeometry
 
 
+def wrench_constants(vehicle: VehicleConfig) -> dict[str, float]:
+    """The constants the fused wrench binds (arms m FRD, coefficients SI, 0/1 effect switches), by name."""
+    geometry = RotorGeometry(vehicle)
+    c: dict[str, float] = {}
+    for i, (ct, (x, y, z), spin, cm) in enumerate(zip(
+            geometry.thrust_coefficients, geometry.arms, geometry.spins, geometry.moment_coefficients,
+            strict=True), start=1):
+        c[f"ct{i}"], c[f"x{i}"], c[f"y{i}"], c[f"z{i}"] = ct, x, y, z
+        c[f"q{i}"] = -spin * cm
+        c[f"j{i}"] = spin * geometry.rotor_inertia
+    aero = vehicle.aero
+    has_drag = aero.rotor_drag is not None
+    c["has_drag"] = float(has_drag)
+    c["kd"], c["kz"] = (aero.rotor_drag.k_d, aero.rotor_drag.k_z) if has_drag else (0.0, 0.0)
+    c["kh"] = aero.translational_lift
+    c["has_lift"] = float(c["kh"] != 0.0)
+    has_ground = aero.ground_effect is not None and vehicle.ground == "plane"
+    c["has_ground"] = float(has_ground)
+    c["rr"] = (aero.ground_effect.rotor_radius / 4.0) ** 2 if has_ground else 0.0  # (R/4)^2, m^2
+    c["hmin"] = aero.ground_effect.min_height if has_ground else 0.0  # m
+    c["cx"], c["cy"], c["cz"] = aero.frame_drag
+    c["dx"], c["dy"], c["dz"] = vehicle.drag.body_quadratic
+    c["has_frame"] = float(any(aero.frame_drag) or any(vehicle.drag.body_quadratic))
+    c["need_air"] = float(has_drag or c["has_lift"] != 0.0)
+    return c
+
+
 def fused_airframe_wrench(vehicle: VehicleConfig, wind: list[float]) -> Callable[..., tuple[float, ...]]:
     """f(z, v NED, w FRD, rotor speeds, R row-major) -> (F_b N, M_b N m, h_z N m s), body FRD about the CG.
 
     The signature and results of sitl.airframe_dynamics.airframe_wrench. wind: NED m/s, read at every call.
     """
-    geometry = RotorGeometry(vehicle)
-    ct1, ct2, ct3, ct4 = geometry.thrust_coefficients
-    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3), (x4, y4, z4) = geometry.arms  # m, FRD from the CG
-    jm = geometry.rotor_inertia
-    q1, q2, q3, q4 = (-s * cm for s, cm in zip(geometry.spins, geometry.moment_coefficients, strict=True))
-    j1, j2, j3, j4 = (s * jm for s in geometry.spins)
-    aero = vehicle.aero
-    has_drag = aero.rotor_drag is not None
-    kd, kz = (aero.rotor_drag.k_d, aero.rotor_drag.k_z) if has_drag else (0.0, 0.0)
-    kh = aero.translational_lift
-    has_lift = kh != 0.0
-    has_ground = aero.ground_effect is not None and vehicle.ground == "plane"
-    rr = (aero.ground_effect.rotor_radius / 4.0) ** 2 if has_ground else 0.0  # (R/4)^2, m^2
-    hmin = aero.ground_effect.min_height if has_ground else 0.0  # m
-    cx, cy, cz = aero.frame_drag
-    dx, dy, dz = vehicle.drag.body_quadratic
-    has_frame = any(aero.frame_drag) or any(vehicle.drag.body_quadratic)
-    need_air = has_drag or has_lift
+    c = wrench_constants(vehicle)
+    ct1, ct2, ct3, ct4 = c["ct1"], c["ct2"], c["ct3"], c["ct4"]
+    x1, y1, z1, x2, y2, z2 = c["x1"], c["y1"], c["z1"], c["x2"], c["y2"], c["z2"]  # m, FRD from the CG
+    x3, y3, z3, x4, y4, z4 = c["x3"], c["y3"], c["z3"], c["x4"], c["y4"], c["z4"]
+    q1, q2, q3, q4 = c["q1"], c["q2"], c["q3"], c["q4"]
+    j1, j2, j3, j4 = c["j1"], c["j2"], c["j3"], c["j4"]
+    has_drag, kd, kz = c["has_drag"] != 0.0, c["kd"], c["kz"]
+    kh, has_lift = c["kh"], c["has_lift"] != 0.0
+    has_ground, rr, hmin = c["has_ground"] != 0.0, c["rr"], c["hmin"]
+    cx, cy, cz, dx, dy, dz = c["cx"], c["cy"], c["cz"], c["dx"], c["dy"], c["dz"]
+    has_frame, need_air = c["has_frame"] != 0.0, c["need_air"] != 0.0
     sqrt = math.sqrt
 
     def wrench(z: float, vx: float, vy: float, vz: float, wx: float, wy: float, wz: float,

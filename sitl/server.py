@@ -21,6 +21,7 @@ from bridge.messages import Heartbeat, HilActuatorControls, mavlink, sanitize_th
 from bridge.shutdown import StopSignals
 from bridge.signing import Signing
 from bridge.vehicle import EXCHANGE_STEP, VehicleConfig
+from sitl import compiled_physics
 from sitl.dynamics import EXCHANGE_STEP_USEC, Quadrotor
 from sitl.ground_link import GroundLink, GroundState, Home
 from sitl.hil import HIL_COMPONENT_ID, SYSTEM_ID, HilEncoder, statustext
@@ -157,6 +158,7 @@ class SitlServer:
         return (
             f"quadsr sitl: listening for the companion on udp:{self.link.local.host}:{self.link.local.port} "
             f"({o.mode}); vehicle {o.vehicle.name}; ground link to {ground}"
+            + ("" if compiled_physics.available() else "; physics in Python (sitl._derivative not built)")
             + ("; signing on" if o.signing_key else "")
             + (f"; logging to {o.log}" if o.log else "")
         )

@@ -84,7 +84,7 @@ def test_the_sitl_derivative_in_wind_equals_the_reference_derivative():
     vehicle = AERO.with_overrides(initial_position=(0.0, 0.0, -0.3))
     quad = Quadrotor(vehicle)
     wind = [4.0, -2.0, 0.5]
-    fast = make_derivative(vehicle, quad.motors, quad.mixer, wind)
+    fast = make_derivative(vehicle, quad.motors, quad.mixer, wind, compiled=False)
     reference = make_derivative(vehicle, quad.motors, quad.mixer, wind, reference=True)
     rng = np.random.default_rng(7)
     for _ in range(500):
