@@ -5,6 +5,7 @@ noise 10 rad/s and wind: 5 m/s steady, moderate Dryden turbulence, a 1-cosine gu
 
 Prints, each as the median of --repeats runs:
   physics       Quadrotor.step + SensorModel.sample, no MAVLink (steps/s; floor 20,000 with every effect on),
+                the compiled derivative where it is built (QUADSR_PHYSICS=python: the Python one),
                 also by the process's CPU time (what the machine's load changes least)
   ceiling       (the faster of: sleeping for each datagram; polling up to bridge.link.LOCKSTEP_SPIN_S first)
                 a bare pymavlink HIL_SENSOR -> HIL_ACTUATOR_CONTROLS ping-pong between two processes over
@@ -267,7 +268,11 @@ def main() -> int:
         print(f"run {i + 1}: " + ", ".join(f"{k} {v[-1]:,.2f}" if "vol" in k else f"{k} {v[-1]:,.0f}"
                                           for k, v in results.items()), flush=True)
     med = {k: statistics.median(v) for k, v in results.items()}
-    print(f"cpu cores: {os.cpu_count()}, steps per run: {args.steps}, medians of {args.repeats} runs")
+    from sitl import compiled_physics
+
+    derivative = "compiled (sitl._derivative)" if compiled_physics.available() else "Python"
+    print(f"cpu cores: {os.cpu_count()}, steps per run: {args.steps}, medians of {args.repeats} runs; "
+          f"physics derivative: {derivative}")
     print(f"messaging ceiling (bare pymavlink ping-pong, 2 processes): {med['ceiling']:,.0f} round trips/s "
           f"({1e6 / med['ceiling']:.1f} us); CPU per round trip, both processes: {med['ceiling_cpu']:.0f} us")
     print(f"  the same, both polling for each datagram up to {LOCKSTEP_SPIN_S * 1e6:.0f} us before sleeping "

@@ -229,7 +229,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_derivative",
-    "The SITL's state derivative, compiled (see sitl.compiled_physics).", -1, methods,
+    "The SITL's state derivative, compiled (see sitl.compiled_physics).", -1, methods, NULL, NULL, NULL, NULL,
 };
 
 PyMODINIT_FUNC PyInit__derivative(void) {
