@@ -37,7 +37,7 @@ from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
 from identification.collinearity import term_identification, term_shapes, term_t_ratios
-from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
+from identification.engine_settings import POLISH_RULES, DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import (
     OPERATORS,
     FeatureSpace,
@@ -48,7 +48,7 @@ from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
 from identification.model_file import ExpressionError, complexity, parse_expression
-from identification.pareto import admissible, attach_holdout, select
+from identification.pareto import admissible, attach_holdout, pick_limit, select, within_tolerance
 from identification.replacement import replacements
 from identification.robust_weights import huber_weights
 from identification.sparse import (
@@ -75,6 +75,12 @@ def check_settings(settings: DiscoverySettings) -> None:
         raise UserError(
             f"discovery settings: unknown operator {bad[0]!r}", hint=f"known: {', '.join(OPERATORS)}"
         )
+    if settings.polish_rule not in POLISH_RULES:
+        raise UserError(f"discovery settings: key 'polish_rule' must be one of {', '.join(POLISH_RULES)}, "
+                        f"got {settings.polish_rule!r}", hint="occam: the pick's tolerance decides each move")
+    if settings.polish_passes < 0 or settings.polish_tries < 1:
+        raise UserError("discovery settings: keys 'polish_passes' >= 0 and 'polish_tries' >= 1, got "
+                        f"{settings.polish_passes} and {settings.polish_tries}", hint="polish_passes 0: off")
     if not settings.primitives:
         raise UserError("discovery settings: no primitives", hint=f"choose from {', '.join(PRIMITIVES)}")
     if not 0.0 <= settings.abs_sign_share <= 1.0:
@@ -275,7 +281,8 @@ class DiscoveryEngine:
         if candidates and s.polish_passes > 0:
             polish_start = time.perf_counter()
             pick = select(candidates, self.selection, scale=scale)
-            candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale)
+            candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale,
+                                       pick_limit(candidates, self.selection, scale))
             self.timings["polish"] = time.perf_counter() - polish_start
         if progress:
             progress(1.0, f"{len(candidates)} candidates")
@@ -293,6 +300,7 @@ class DiscoveryEngine:
         yh: np.ndarray,
         loss: str,
         scale: float,
+        limit: float | None = None,
     ) -> list[Candidate]:
         """Term-substitution polish of the pick: a local search that swaps one term of the picked model for
         one pool feature at a time. The sparse paths grow or shrink a model one term at a time along a
@@ -300,14 +308,25 @@ class DiscoveryEngine:
         local optimum they never leave, since the true term only helps once the copy is out (fang-chen-aero's
         dwy: no candidate of the paths held wz^2, yet swapping it in was better on the pick rows).
         Each pass ranks every (term, pool feature) swap by the least-squares residual of the swapped model on
-        the fit rows (term_substitutions: one projection of the pool, no refit), refits the best
-        `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit) and
-        keeps the one with the lowest pick-row loss when it beats the current model's (_better) and passes
-        the pick's identification rules (t ratio >= min_t, VIF <= max_vif); at most `polish_passes` passes,
-        stopping at the first that finds no better swap. Budgets are counts; deterministic (stable orders).
+        the fit rows (term_substitutions: one projection of the pool, no refit) and refits the best
+        `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit);
+        every refit must pass the pick's identification rules (t ratio >= min_t, VIF <= max_vif).
+        polish_rule "occam" (the pick's own rule, pareto.select): the pass also refits the best
+        `polish_tries` swaps that lower the model's complexity (a pool feature smaller than the term it
+        replaces) and the best `polish_tries` removals of one term (term_removals). A swap that is better
+        than the current model by more than the pick's tolerance (current loss > its loss * (1 + rel_tol) +
+        abs_tol * scale: the pick would take it over the current model at any complexity) is taken, the
+        lowest loss first; else the simplest model within the pick's tolerance of the best loss seen
+        (`limit`: the pick's limit over every candidate so far; pareto.pick_limit) that is simpler than the
+        current one; else the pass stops. Loss-level moves below the tolerance are never taken, so the
+        polish does not chain noise-level gains; what it returns, the pick weighs as any candidate.
+        polish_rule "margin" (session 7): keeps the lowest-loss swap when it beats the current model's
+        pick loss by more than 0.1 % (_better).
+        At most `polish_passes` passes. Budgets are counts; deterministic (stable orders).
         F, y: the fit rows' feature matrix and target (weak rows when the weak form is on); the candidates
-        returned (each accepted swap's model) join the others for identify's pick."""
+        returned (each accepted move's model) join the others for identify's pick."""
         s = self.settings
+        sel = self.selection
         prims = list(columns.space.primitives)
         terms = _product_factors(pick.expression)
         if not terms or pick.holdout_loss is None or not np.isfinite(pick.holdout_loss):
@@ -315,8 +334,13 @@ class DiscoveryEngine:
         weak, weak_h = self.weak or (None, None)
         lag = self._weak_lag()
         exprs = columns.space.expressions
+        sizes = {i: complexity(exprs[i]) for i in pool}
         # the constant stays in (or out) as in the pick: a swap changes one term, not the constant's
         constant = any(t.is_number for t in sympy.Add.make_args(pick.expression))
+        occam = s.polish_rule == "occam"
+        best_seen = float(pick.holdout_loss)
+        if limit is None or not np.isfinite(limit):
+            limit = within_tolerance(best_seen, sel, scale)
         out: list[Candidate] = []
         current = pick
         for _ in range(s.polish_passes):
@@ -325,22 +349,51 @@ class DiscoveryEngine:
             if weak is not None:
                 M = np.asarray(weak @ M)
             free = [i for i in pool if exprs[i] not in terms]
-            if not free:
+            ranked = term_substitutions(M, F[:, free], y) if free else []
+            moves: list[list[sympy.Expr]] = []
+            for j, f, _rss in ranked[: s.polish_tries]:
+                moves.append([*terms[:j], exprs[free[f]], *terms[j + 1:]])
+            if occam:
+                term_size = [complexity(t) for t in terms]
+                smaller = [(j, f) for j, f, _rss in ranked if sizes[free[f]] < term_size[j]]
+                for j, f in smaller[: s.polish_tries]:
+                    shapes = [*terms[:j], exprs[free[f]], *terms[j + 1:]]
+                    if shapes not in moves:
+                        moves.append(shapes)
+                if len(terms) > 1:
+                    for j, _rss in term_removals(M, y)[: s.polish_tries]:
+                        moves.append([*terms[:j], *terms[j + 1:]])
+            if not moves:
                 break
-            ranked = term_substitutions(M, F[:, free], y)[: s.polish_tries]
             tried: list[Candidate] = []
-            for j, f, _rss in ranked:
-                shapes = [*terms[:j], exprs[free[f]], *terms[j + 1:]]
+            for shapes in moves:
                 c = self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant)
                 if c is not None:
                     tried.append(c)
             attach_holdout(tried, Xh, yh, loss, weak_h)
-            ok = [c for c in tried if admissible(c, self.selection) and _better(c, current, scale)]
-            if not ok:
-                break
-            current = min(ok, key=lambda c: (c.holdout_loss, c.complexity))
+            ok = [c for c in tried if admissible(c, sel) and c.holdout_loss is not None
+                  and np.isfinite(c.holdout_loss)]
+            if occam:
+                better = [c for c in ok
+                          if current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
+                limit = min(limit, within_tolerance(best_seen, sel, scale))
+                simpler = [c for c in ok if c.complexity < current.complexity and c.holdout_loss <= limit]
+                if better:
+                    current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
+                elif simpler:
+                    current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
+                else:
+                    break
+                best_seen = min(best_seen, float(current.holdout_loss))
+            else:
+                better = [c for c in ok if _better(c, current, scale)]
+                if not better:
+                    break
+                current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
             out.append(current)
             terms = _product_factors(current.expression)
+            if not terms:
+                break
         self.stats["polish_swaps"] = len(out)
         return out
 
@@ -376,7 +429,8 @@ class DiscoveryEngine:
         const, cf = float(coef[0]), np.asarray(coef[1:])
         c = Candidate(
             expression=sparse_expression(feats, coef),
-            complexity=sum(complexity(e) + (1 if k == 0 else 2) for k, e in enumerate(exprs)) + 1,
+            complexity=sum(complexity(e) + (1 if k == 0 else 2) for k, e in enumerate(exprs)
+                           if k > 0 or constant) + 1,
             train_loss=loss_fn(y, theta @ coef, loss),
             engine=f"{self.name}(+polish)",
             predict=lambda X_, cf=cf, k=const: fn(columns.primitives(X_)) @ cf + k,
@@ -871,6 +925,24 @@ def term_substitutions(
             break
         out.append((j, f, float(new[j, f])))
     return out
+
+
+def term_removals(M: np.ndarray, y: np.ndarray) -> list[tuple[int, float]]:
+    """Every removal of one model term, ranked by the reduced model's least-squares residual sum of squares on
+    y (N,) (with a constant): [(term j, RSS)], lowest first (stable). M (N,k): the model's term columns.
+    One QR serves every removal: with u_j the unit direction of term j orthogonal to the other columns,
+    removing j adds (u_j.y)^2 to the RSS (term_substitutions). Empty when the columns are dependent."""
+    n, k = M.shape
+    if k == 0 or not np.all(np.isfinite(M)):
+        return []
+    q, r_ = np.linalg.qr(np.hstack([np.ones((n, 1)), M]))
+    if np.min(np.abs(np.diag(r_))) <= 1e-12 * np.max(np.abs(np.diag(r_))):
+        return []
+    U = q @ np.linalg.inv(r_).T[:, 1:]
+    U /= np.linalg.norm(U, axis=0)
+    resid = y - q @ (q.T @ y)
+    rss = float(resid @ resid) + (U.T @ y) ** 2
+    return [(int(j), float(rss[j])) for j in np.argsort(rss, kind="stable")]
 
 
 def _model_t(F: np.ndarray, terms: np.ndarray, y: np.ndarray) -> dict[int, float]:

@@ -15,6 +15,7 @@ from bridge.errors import UserError
 from bridge.yaml_file import Section, load_yaml_file, read_dataclass
 from identification.library import DEFAULT_GROUPS, GROUPS
 
+POLISH_RULES = ("occam", "margin")  # DiscoverySettings.polish_rule
 SETTINGS_HINT = "every key is optional; see the dataclasses in identification/engine_settings.py"
 
 
@@ -107,6 +108,11 @@ class DiscoverySettings:
     # took noise-level swaps elsewhere (closed-loop aero 17 -> 19 extra, realistic-sensor aero 11 -> 23)
     polish_passes: int = 0
     polish_tries: int = 12
+    # which moves the polish takes (POLISH_RULES): "occam", the pick's own rule: a swap better by more than
+    # the pick's tolerance (rel_tol/abs_tol), else the simplest swap or one-term removal that lowers the
+    # complexity and stays within that tolerance of the best pick loss; "margin" (session 7): any swap whose
+    # pick loss is lower by > 0.1 %
+    polish_rule: str = "occam"
 
 
 @dataclass(frozen=True)
