@@ -78,6 +78,9 @@ def check_settings(settings: DiscoverySettings) -> None:
     if settings.polish_rule not in POLISH_RULES:
         raise UserError(f"discovery settings: key 'polish_rule' must be one of {', '.join(POLISH_RULES)}, "
                         f"got {settings.polish_rule!r}", hint="occam: the pick's tolerance decides each move")
+    if not (settings.polish_z > 0 and np.isfinite(settings.polish_z)) or settings.polish_blocks < 2:
+        raise UserError("discovery settings: keys 'polish_z' > 0 and 'polish_blocks' >= 2, got "
+                        f"{settings.polish_z} and {settings.polish_blocks}", hint="polish_z 2, blocks 20")
     if settings.polish_passes < 0 or settings.polish_tries < 1:
         raise UserError("discovery settings: keys 'polish_passes' >= 0 and 'polish_tries' >= 1, got "
                         f"{settings.polish_passes} and {settings.polish_tries}", hint="polish_passes 0: off")
@@ -337,7 +340,13 @@ class DiscoveryEngine:
         sizes = {i: complexity(exprs[i]) for i in pool}
         # the constant stays in (or out) as in the pick: a swap changes one term, not the constant's
         constant = any(t.is_number for t in sympy.Add.make_args(pick.expression))
-        occam = s.polish_rule == "occam"
+        occam = s.polish_rule in ("occam", "tolerance")
+        yv = yh if weak_h is None else weak_h @ yh
+
+        def pick_pred(c: Candidate) -> np.ndarray:
+            pred = c.evaluate(Xh)
+            return pred if weak_h is None else weak_h @ pred
+
         best_seen = float(pick.holdout_loss)
         if limit is None or not np.isfinite(limit):
             limit = within_tolerance(best_seen, sel, scale)
@@ -373,7 +382,24 @@ class DiscoveryEngine:
             attach_holdout(tried, Xh, yh, loss, weak_h)
             ok = [c for c in tried if admissible(c, sel) and c.holdout_loss is not None
                   and np.isfinite(c.holdout_loss)]
-            if occam:
+            if s.polish_rule == "occam":
+                # paired t of each move's pick-row losses against the current model's (block means)
+                cur = pick_pred(current)
+                t = {id(c): paired_loss_t(yv, pick_pred(c), cur, loss, s.polish_blocks) for c in ok}
+                limit = min(limit, within_tolerance(best_seen, sel, scale))
+                better = [c for c in ok if t[id(c)] < -s.polish_z and (
+                    c.complexity <= current.complexity
+                    or current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale))]
+                simpler = [c for c in ok if c.complexity < current.complexity and t[id(c)] <= s.polish_z
+                           and c.holdout_loss <= limit]
+                if better:
+                    current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
+                elif simpler:
+                    current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
+                else:
+                    break
+                best_seen = min(best_seen, float(current.holdout_loss))
+            elif s.polish_rule == "tolerance":
                 better = [c for c in ok
                           if current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
@@ -925,6 +951,27 @@ def term_substitutions(
             break
         out.append((j, f, float(new[j, f])))
     return out
+
+
+def paired_loss_t(y: np.ndarray, a: np.ndarray, b: np.ndarray, loss: str, blocks: int) -> float:
+    """t ratio of the pick-row loss of predictions a against b (both (N,), targets y): the rows' loss
+    differences (|y - a| - |y - b| for the absolute loss, squared errors for the squared loss) averaged, over
+    the standard error of that mean from `blocks` contiguous blocks' means (batch means: the rows' own
+    autocorrelation, and the weak rows' window overlap, stay inside a block). Negative: a is better. 0 when
+    the two predict the same; +-inf when the differences do not vary between blocks; NaN when not finite."""
+    ra, rb = y - np.asarray(a, float), y - np.asarray(b, float)
+    d = np.abs(ra) - np.abs(rb) if loss == "absolute" else ra * ra - rb * rb
+    if not np.all(np.isfinite(d)):
+        return float("nan")
+    mean = float(np.mean(d)) if len(d) else 0.0
+    k = int(min(max(blocks, 2), len(d)))
+    if k < 2 or mean == 0.0:
+        return 0.0
+    means = np.asarray([float(np.mean(part)) for part in np.array_split(d, k)])
+    se = float(np.std(means, ddof=1)) / np.sqrt(k)
+    if not se > 0.0:
+        return float(np.sign(mean)) * float("inf")
+    return mean / se
 
 
 def term_removals(M: np.ndarray, y: np.ndarray) -> list[tuple[int, float]]:

@@ -15,7 +15,7 @@ from bridge.errors import UserError
 from bridge.yaml_file import Section, load_yaml_file, read_dataclass
 from identification.library import DEFAULT_GROUPS, GROUPS
 
-POLISH_RULES = ("occam", "margin")  # DiscoverySettings.polish_rule
+POLISH_RULES = ("occam", "tolerance", "margin")  # DiscoverySettings.polish_rule
 SETTINGS_HINT = "every key is optional; see the dataclasses in identification/engine_settings.py"
 
 
@@ -108,11 +108,16 @@ class DiscoverySettings:
     # took noise-level swaps elsewhere (closed-loop aero 17 -> 19 extra, realistic-sensor aero 11 -> 23)
     polish_passes: int = 0
     polish_tries: int = 12
-    # which moves the polish takes (POLISH_RULES): "occam", the pick's own rule: a swap better by more than
-    # the pick's tolerance (rel_tol/abs_tol), else the simplest swap or one-term removal that lowers the
-    # complexity and stays within that tolerance of the best pick loss; "margin" (session 7): any swap whose
-    # pick loss is lower by > 0.1 %
+    # which moves the polish takes (POLISH_RULES; DiscoveryEngine._polish). "occam": a move whose pick-row
+    # loss is lower than the current model's by more than polish_z standard errors (paired differences, the SE
+    # from polish_blocks contiguous blocks' means), when it adds no complexity or beats the current model by
+    # the pick's tolerance; else the simplest swap or one-term removal that lowers the complexity, is not
+    # worse by more than polish_z standard errors and stays within the pick's tolerance of the best pick loss.
+    # "tolerance": the pick's rel_tol/abs_tol alone for both (measured: gives wz^2's slot to |wz| on
+    # noise-free aero data). "margin" (session 7): any swap whose pick loss is lower by > 0.1 %
     polish_rule: str = "occam"
+    polish_z: float = 2.0
+    polish_blocks: int = 20
 
 
 @dataclass(frozen=True)
