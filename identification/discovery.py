@@ -387,9 +387,10 @@ class DiscoveryEngine:
                 cur = pick_pred(current)
                 t = {id(c): paired_loss_t(yv, pick_pred(c), cur, loss, s.polish_blocks) for c in ok}
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
+                grows = [c for c in ok if s.polish_grow
+                         and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
                 better = [c for c in ok if t[id(c)] < -s.polish_z and (
-                    c.complexity <= current.complexity
-                    or current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale))]
+                    c.complexity <= current.complexity or any(c is g for g in grows))]
                 simpler = [c for c in ok if c.complexity < current.complexity and t[id(c)] <= s.polish_z
                            and c.holdout_loss <= limit]
                 if better:

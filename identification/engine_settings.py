@@ -118,6 +118,9 @@ class DiscoverySettings:
     polish_rule: str = "occam"
     polish_z: float = 2.0
     polish_blocks: int = 20
+    # "occam" only: also take a better move that raises the complexity, when it beats the current model by the
+    # pick's tolerance too (measured: on closed-loop aero it wrote fz's wz^3 as wz^2 (u1^2+..+u4^2), 3 extras)
+    polish_grow: bool = False
 
 
 @dataclass(frozen=True)
