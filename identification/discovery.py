@@ -15,7 +15,9 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
    expressions come back expanded into their additive terms, which join the picked model's features in one
    more sparse fit (refit, pruned and identified term by term like any feature);
 6. the pick is polished by term substitution (DiscoveryEngine._polish): one term swapped for one pool
-   feature at a time, kept when the pick rows' loss improves and the pick's identification rules hold.
+   feature, or removed, at a time; a move is kept when the pick's identification rules hold and (rule
+   "occam") its pick-row loss is lower by more than noise at no more complexity, or it lowers the complexity
+   without being worse by more than noise and within the pick's tolerance (the pick then decides).
 The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
 dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
 Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
@@ -77,7 +79,7 @@ def check_settings(settings: DiscoverySettings) -> None:
         )
     if settings.polish_rule not in POLISH_RULES:
         raise UserError(f"discovery settings: key 'polish_rule' must be one of {', '.join(POLISH_RULES)}, "
-                        f"got {settings.polish_rule!r}", hint="occam: the pick's tolerance decides each move")
+                        f"got {settings.polish_rule!r}", hint="occam (default): noise decides each move")
     if not (settings.polish_z > 0 and np.isfinite(settings.polish_z)) or settings.polish_blocks < 2:
         raise UserError("discovery settings: keys 'polish_z' > 0 and 'polish_blocks' >= 2, got "
                         f"{settings.polish_z} and {settings.polish_blocks}", hint="polish_z 2, blocks 20")
@@ -314,15 +316,19 @@ class DiscoveryEngine:
         the fit rows (term_substitutions: one projection of the pool, no refit) and refits the best
         `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit);
         every refit must pass the pick's identification rules (t ratio >= min_t, VIF <= max_vif).
-        polish_rule "occam" (the pick's own rule, pareto.select): the pass also refits the best
-        `polish_tries` swaps that lower the model's complexity (a pool feature smaller than the term it
-        replaces) and the best `polish_tries` removals of one term (term_removals). A swap that is better
-        than the current model by more than the pick's tolerance (current loss > its loss * (1 + rel_tol) +
-        abs_tol * scale: the pick would take it over the current model at any complexity) is taken, the
-        lowest loss first; else the simplest model within the pick's tolerance of the best loss seen
-        (`limit`: the pick's limit over every candidate so far; pareto.pick_limit) that is simpler than the
-        current one; else the pass stops. Loss-level moves below the tolerance are never taken, so the
-        polish does not chain noise-level gains; what it returns, the pick weighs as any candidate.
+        polish_rule "occam" (the default) and "tolerance": the pass also refits the best `polish_tries` swaps
+        that lower the model's complexity (a pool feature smaller than the term it replaces) and the best
+        `polish_tries` removals of one term (term_removals). "occam" decides by noise: each refit's pick-row
+        loss against the current model's as a paired t ratio (paired_loss_t: the rows' loss differences, the
+        standard error from `polish_blocks` contiguous blocks' means). A move better by more than `polish_z`
+        standard errors that adds no complexity is taken, the lowest loss first (with `polish_grow`, also one
+        that adds complexity when it beats the current model by the pick's tolerance as well); else the
+        simplest move that lowers the complexity, is not worse by more than `polish_z` standard errors and
+        stays within the pick's tolerance of the best loss seen (`limit`: the pick's limit over every
+        candidate so far, pareto.pick_limit); else the pass stops. "tolerance" uses the pick's rel_tol/abs_tol
+        in place of the standard errors (on noise-free targets rel_tol is no noise level: it let |wz| stand
+        for a small wz^2). So noise-level gains are never chained; what the polish returns, the pick weighs
+        as any candidate.
         polish_rule "margin" (session 7): keeps the lowest-loss swap when it beats the current model's
         pick loss by more than 0.1 % (_better).
         At most `polish_passes` passes. Budgets are counts; deterministic (stable orders).
