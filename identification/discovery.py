@@ -15,7 +15,9 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
    expressions come back expanded into their additive terms, which join the picked model's features in one
    more sparse fit (refit, pruned and identified term by term like any feature);
 6. the pick is polished by term substitution (DiscoveryEngine._polish): one term swapped for one pool
-   feature at a time, kept when the pick rows' loss improves and the pick's identification rules hold.
+   feature, or removed, at a time; a move is kept when the pick's identification rules hold and (rule
+   "occam") its pick-row loss is lower by more than noise at no more complexity, or it lowers the complexity
+   without being worse by more than noise and within the pick's tolerance (the pick then decides).
 The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
 dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
 Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
@@ -37,7 +39,7 @@ from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
 from identification.collinearity import term_identification, term_shapes, term_t_ratios
-from identification.engine_settings import DiscoverySettings, SelectionSettings, SparseSettings
+from identification.engine_settings import POLISH_RULES, DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import (
     OPERATORS,
     FeatureSpace,
@@ -48,7 +50,7 @@ from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
 from identification.model_file import ExpressionError, complexity, parse_expression
-from identification.pareto import admissible, attach_holdout, select
+from identification.pareto import admissible, attach_holdout, pick_limit, select, within_tolerance
 from identification.replacement import replacements
 from identification.robust_weights import huber_weights
 from identification.sparse import (
@@ -75,6 +77,15 @@ def check_settings(settings: DiscoverySettings) -> None:
         raise UserError(
             f"discovery settings: unknown operator {bad[0]!r}", hint=f"known: {', '.join(OPERATORS)}"
         )
+    if settings.polish_rule not in POLISH_RULES:
+        raise UserError(f"discovery settings: key 'polish_rule' must be one of {', '.join(POLISH_RULES)}, "
+                        f"got {settings.polish_rule!r}", hint="occam (default): noise decides each move")
+    if not (settings.polish_z > 0 and np.isfinite(settings.polish_z)) or settings.polish_blocks < 2:
+        raise UserError("discovery settings: keys 'polish_z' > 0 and 'polish_blocks' >= 2, got "
+                        f"{settings.polish_z} and {settings.polish_blocks}", hint="polish_z 2, blocks 20")
+    if settings.polish_passes < 0 or settings.polish_tries < 1:
+        raise UserError("discovery settings: keys 'polish_passes' >= 0 and 'polish_tries' >= 1, got "
+                        f"{settings.polish_passes} and {settings.polish_tries}", hint="polish_passes 0: off")
     if not settings.primitives:
         raise UserError("discovery settings: no primitives", hint=f"choose from {', '.join(PRIMITIVES)}")
     if not 0.0 <= settings.abs_sign_share <= 1.0:
@@ -275,7 +286,8 @@ class DiscoveryEngine:
         if candidates and s.polish_passes > 0:
             polish_start = time.perf_counter()
             pick = select(candidates, self.selection, scale=scale)
-            candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale)
+            candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale,
+                                       pick_limit(candidates, self.selection, scale))
             self.timings["polish"] = time.perf_counter() - polish_start
         if progress:
             progress(1.0, f"{len(candidates)} candidates")
@@ -293,6 +305,7 @@ class DiscoveryEngine:
         yh: np.ndarray,
         loss: str,
         scale: float,
+        limit: float | None = None,
     ) -> list[Candidate]:
         """Term-substitution polish of the pick: a local search that swaps one term of the picked model for
         one pool feature at a time. The sparse paths grow or shrink a model one term at a time along a
@@ -300,14 +313,29 @@ class DiscoveryEngine:
         local optimum they never leave, since the true term only helps once the copy is out (fang-chen-aero's
         dwy: no candidate of the paths held wz^2, yet swapping it in was better on the pick rows).
         Each pass ranks every (term, pool feature) swap by the least-squares residual of the swapped model on
-        the fit rows (term_substitutions: one projection of the pool, no refit), refits the best
-        `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit) and
-        keeps the one with the lowest pick-row loss when it beats the current model's (_better) and passes
-        the pick's identification rules (t ratio >= min_t, VIF <= max_vif); at most `polish_passes` passes,
-        stopping at the first that finds no better swap. Budgets are counts; deterministic (stable orders).
+        the fit rows (term_substitutions: one projection of the pool, no refit) and refits the best
+        `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit);
+        every refit must pass the pick's identification rules (t ratio >= min_t, VIF <= max_vif).
+        polish_rule "occam" (the default) and "tolerance": the pass also refits the best `polish_tries` swaps
+        that lower the model's complexity (a pool feature smaller than the term it replaces) and the best
+        `polish_tries` removals of one term (term_removals). "occam" decides by noise: each refit's pick-row
+        loss against the current model's as a paired t ratio (paired_loss_t: the rows' loss differences, the
+        standard error from `polish_blocks` contiguous blocks' means). A move better by more than `polish_z`
+        standard errors that adds no complexity is taken, the lowest loss first (with `polish_grow`, also one
+        that adds complexity when it beats the current model by the pick's tolerance as well); else the
+        simplest move that lowers the complexity, is not worse by more than `polish_z` standard errors and
+        stays within the pick's tolerance of the best loss seen (`limit`: the pick's limit over every
+        candidate so far, pareto.pick_limit); else the pass stops. "tolerance" uses the pick's rel_tol/abs_tol
+        in place of the standard errors (on noise-free targets rel_tol is no noise level: it let |wz| stand
+        for a small wz^2). So noise-level gains are never chained; what the polish returns, the pick weighs
+        as any candidate.
+        polish_rule "margin" (session 7): keeps the lowest-loss swap when it beats the current model's
+        pick loss by more than 0.1 % (_better).
+        At most `polish_passes` passes. Budgets are counts; deterministic (stable orders).
         F, y: the fit rows' feature matrix and target (weak rows when the weak form is on); the candidates
-        returned (each accepted swap's model) join the others for identify's pick."""
+        returned (each accepted move's model) join the others for identify's pick."""
         s = self.settings
+        sel = self.selection
         prims = list(columns.space.primitives)
         terms = _product_factors(pick.expression)
         if not terms or pick.holdout_loss is None or not np.isfinite(pick.holdout_loss):
@@ -315,8 +343,19 @@ class DiscoveryEngine:
         weak, weak_h = self.weak or (None, None)
         lag = self._weak_lag()
         exprs = columns.space.expressions
+        sizes = {i: complexity(exprs[i]) for i in pool}
         # the constant stays in (or out) as in the pick: a swap changes one term, not the constant's
         constant = any(t.is_number for t in sympy.Add.make_args(pick.expression))
+        occam = s.polish_rule in ("occam", "tolerance")
+        yv = yh if weak_h is None else weak_h @ yh
+
+        def pick_pred(c: Candidate) -> np.ndarray:
+            pred = c.evaluate(Xh)
+            return pred if weak_h is None else weak_h @ pred
+
+        best_seen = float(pick.holdout_loss)
+        if limit is None or not np.isfinite(limit):
+            limit = within_tolerance(best_seen, sel, scale)
         out: list[Candidate] = []
         current = pick
         for _ in range(s.polish_passes):
@@ -325,22 +364,69 @@ class DiscoveryEngine:
             if weak is not None:
                 M = np.asarray(weak @ M)
             free = [i for i in pool if exprs[i] not in terms]
-            if not free:
+            ranked = term_substitutions(M, F[:, free], y) if free else []
+            moves: list[list[sympy.Expr]] = []
+            for j, f, _rss in ranked[: s.polish_tries]:
+                moves.append([*terms[:j], exprs[free[f]], *terms[j + 1:]])
+            if occam:
+                term_size = [complexity(t) for t in terms]
+                smaller = [(j, f) for j, f, _rss in ranked if sizes[free[f]] < term_size[j]]
+                for j, f in smaller[: s.polish_tries]:
+                    shapes = [*terms[:j], exprs[free[f]], *terms[j + 1:]]
+                    if shapes not in moves:
+                        moves.append(shapes)
+                if len(terms) > 1:
+                    for j, _rss in term_removals(M, y)[: s.polish_tries]:
+                        moves.append([*terms[:j], *terms[j + 1:]])
+            if not moves:
                 break
-            ranked = term_substitutions(M, F[:, free], y)[: s.polish_tries]
             tried: list[Candidate] = []
-            for j, f, _rss in ranked:
-                shapes = [*terms[:j], exprs[free[f]], *terms[j + 1:]]
+            for shapes in moves:
                 c = self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant)
                 if c is not None:
                     tried.append(c)
             attach_holdout(tried, Xh, yh, loss, weak_h)
-            ok = [c for c in tried if admissible(c, self.selection) and _better(c, current, scale)]
-            if not ok:
-                break
-            current = min(ok, key=lambda c: (c.holdout_loss, c.complexity))
+            ok = [c for c in tried if admissible(c, sel) and c.holdout_loss is not None
+                  and np.isfinite(c.holdout_loss)]
+            if s.polish_rule == "occam":
+                # paired t of each move's pick-row losses against the current model's (block means)
+                cur = pick_pred(current)
+                t = {id(c): paired_loss_t(yv, pick_pred(c), cur, loss, s.polish_blocks) for c in ok}
+                limit = min(limit, within_tolerance(best_seen, sel, scale))
+                grows = [c for c in ok if s.polish_grow
+                         and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
+                better = [c for c in ok if t[id(c)] < -s.polish_z and (
+                    c.complexity <= current.complexity or any(c is g for g in grows))]
+                simpler = [c for c in ok if c.complexity < current.complexity and t[id(c)] <= s.polish_z
+                           and c.holdout_loss <= limit]
+                if better:
+                    current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
+                elif simpler:
+                    current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
+                else:
+                    break
+                best_seen = min(best_seen, float(current.holdout_loss))
+            elif s.polish_rule == "tolerance":
+                better = [c for c in ok
+                          if current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
+                limit = min(limit, within_tolerance(best_seen, sel, scale))
+                simpler = [c for c in ok if c.complexity < current.complexity and c.holdout_loss <= limit]
+                if better:
+                    current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
+                elif simpler:
+                    current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
+                else:
+                    break
+                best_seen = min(best_seen, float(current.holdout_loss))
+            else:
+                better = [c for c in ok if _better(c, current, scale)]
+                if not better:
+                    break
+                current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
             out.append(current)
             terms = _product_factors(current.expression)
+            if not terms:
+                break
         self.stats["polish_swaps"] = len(out)
         return out
 
@@ -376,7 +462,8 @@ class DiscoveryEngine:
         const, cf = float(coef[0]), np.asarray(coef[1:])
         c = Candidate(
             expression=sparse_expression(feats, coef),
-            complexity=sum(complexity(e) + (1 if k == 0 else 2) for k, e in enumerate(exprs)) + 1,
+            complexity=sum(complexity(e) + (1 if k == 0 else 2) for k, e in enumerate(exprs)
+                           if k > 0 or constant) + 1,
             train_loss=loss_fn(y, theta @ coef, loss),
             engine=f"{self.name}(+polish)",
             predict=lambda X_, cf=cf, k=const: fn(columns.primitives(X_)) @ cf + k,
@@ -871,6 +958,45 @@ def term_substitutions(
             break
         out.append((j, f, float(new[j, f])))
     return out
+
+
+def paired_loss_t(y: np.ndarray, a: np.ndarray, b: np.ndarray, loss: str, blocks: int) -> float:
+    """t ratio of the pick-row loss of predictions a against b (both (N,), targets y): the rows' loss
+    differences (|y - a| - |y - b| for the absolute loss, squared errors for the squared loss) averaged, over
+    the standard error of that mean from `blocks` contiguous blocks' means (batch means: the rows' own
+    autocorrelation, and the weak rows' window overlap, stay inside a block). Negative: a is better. 0 when
+    the two predict the same; +-inf when the differences do not vary between blocks; NaN when not finite."""
+    ra, rb = y - np.asarray(a, float), y - np.asarray(b, float)
+    d = np.abs(ra) - np.abs(rb) if loss == "absolute" else ra * ra - rb * rb
+    if not np.all(np.isfinite(d)):
+        return float("nan")
+    mean = float(np.mean(d)) if len(d) else 0.0
+    k = int(min(max(blocks, 2), len(d)))
+    if k < 2 or mean == 0.0:
+        return 0.0
+    means = np.asarray([float(np.mean(part)) for part in np.array_split(d, k)])
+    se = float(np.std(means, ddof=1)) / np.sqrt(k)
+    if not se > 0.0:
+        return float(np.sign(mean)) * float("inf")
+    return mean / se
+
+
+def term_removals(M: np.ndarray, y: np.ndarray) -> list[tuple[int, float]]:
+    """Every removal of one model term, ranked by the reduced model's least-squares residual sum of squares on
+    y (N,) (with a constant): [(term j, RSS)], lowest first (stable). M (N,k): the model's term columns.
+    One QR serves every removal: with u_j the unit direction of term j orthogonal to the other columns,
+    removing j adds (u_j.y)^2 to the RSS (term_substitutions). Empty when the columns are dependent."""
+    n, k = M.shape
+    if k == 0 or not np.all(np.isfinite(M)):
+        return []
+    q, r_ = np.linalg.qr(np.hstack([np.ones((n, 1)), M]))
+    if np.min(np.abs(np.diag(r_))) <= 1e-12 * np.max(np.abs(np.diag(r_))):
+        return []
+    U = q @ np.linalg.inv(r_).T[:, 1:]
+    U /= np.linalg.norm(U, axis=0)
+    resid = y - q @ (q.T @ y)
+    rss = float(resid @ resid) + (U.T @ y) ** 2
+    return [(int(j), float(rss[j])) for j in np.argsort(rss, kind="stable")]
 
 
 def _model_t(F: np.ndarray, terms: np.ndarray, y: np.ndarray) -> dict[int, float]:

@@ -87,10 +87,24 @@ def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: 
     if not finite:
         return min(candidates, key=lambda c: c.complexity)
     finite = _passing(finite, settings)
-    best = min(s for _, s in finite)
-    limit = best * (1.0 + settings.rel_tol) + settings.abs_tol * (scale if scale > 0 else 1.0)
+    limit = within_tolerance(min(s for _, s in finite), settings, scale)
     ok = [(c, s) for c, s in finite if s <= limit]
     return min(ok, key=lambda cs: (cs[0].complexity, cs[1]))[0]
+
+
+def within_tolerance(best: float, settings: SelectionSettings, scale: float = 1.0) -> float:
+    """The largest held-out loss the pick treats as equal to `best`: best * (1 + rel_tol) + abs_tol * scale
+    (scale: the held-out target's standard deviation; module docstring)."""
+    return best * (1.0 + settings.rel_tol) + settings.abs_tol * (scale if scale > 0 else 1.0)
+
+
+def pick_limit(candidates: Sequence[Candidate], settings: SelectionSettings, scale: float = 1.0) -> float:
+    """The pick's tolerance limit over `candidates` (select's: within_tolerance of the lowest held-out loss
+    among those the pick compares); inf when none has a finite one."""
+    finite = [(c, s) for c in candidates if math.isfinite(s := _score(c))]
+    if not finite:
+        return float("inf")
+    return within_tolerance(min(s for _, s in _passing(finite, settings)), settings, scale)
 
 
 def _passing(scored: list[tuple[Candidate, float]], settings: SelectionSettings) -> list:
