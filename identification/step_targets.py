@@ -177,13 +177,12 @@ def step_interval_rows(
     mean_sq, first = lagged_square_moments(u[:-1], u[1:], ratio)
     xi[:, 9:12] -= _rate_moment(dw_mean, xi[:, 9:12], mean_sq, first, dt[:, 0])
     if gravity is not None:
-        # the thrust's first moment over the step (s about the midpoint): sum_i mean((tau - 1/2) u_i^2) dt
-        # over sum_i mean(u_i^2), the specific force taken to change with the rotors' summed squared speeds
-        total = mean_sq.sum(axis=1)
-        lead = np.divide(first.sum(axis=1) * dt[:, 0], total, out=np.zeros(len(total)), where=total > 0.0)
-        a_mid = _midpoint_acceleration(a_mean, xi[:, 6:9], xi[:, 9:12], dt[:, 0], gravity, dw_mean, lead)
+        r = rotation_matrix(xi[:, 6], xi[:, 7], xi[:, 8])
+        rough = np.einsum("nji,nj->ni", r, a_mean - np.array([0.0, 0.0, gravity]))  # f_b, to fit the map
+        moment = _force_moment(rough, mean_sq, first, dt[:, 0])
+        a_mid = _midpoint_acceleration(a_mean, xi[:, 6:9], xi[:, 9:12], dt[:, 0], gravity, dw_mean, moment)
         xi[:, 3:6] = _mean_body_velocity(xi[:, 3:6], a_mean, a_mid, xi[:, 6:9], xi[:, 9:12], dw_mean,
-                                         lead, dt[:, 0], gravity)
+                                         moment, dt[:, 0], gravity)
     targets = np.concatenate((a_mid, dw_mean), axis=1)
     u_mid = np.sqrt(np.maximum(mean_sq, 0.0))
     return 0.5 * (t[:-1] + t[1:]), xi, u_mid, targets
@@ -196,7 +195,7 @@ def _midpoint_acceleration(
     dt: np.ndarray,
     gravity: float,
     dw: np.ndarray | None = None,
-    lead: np.ndarray | None = None,
+    moment: np.ndarray | None = None,
 ) -> np.ndarray:
     """NED acceleration (M,3) m/s^2 at the step's midpoint attitude from its mean over the step.
 
@@ -207,9 +206,8 @@ def _midpoint_acceleration(
     itself turned by [dw] dt^2/8 and the mean is R_mid (I + ([w]x^2 - 2 [dw]x) dt^2/24) f_b: without that,
     a per-motor PRBS (dw ~ 50 rad/s^2 under 10 m/s^2 of thrust) puts 3e-4 m/s^2 of the pitch torque into
     fx, which the engines fit as spurious signed rotor terms. With the specific force changing over the step
-    (the rotors lagging toward a new command) the mean gains [w]x m1, m1 the first moment of f_b about the
-    midpoint, taken as lead f_b (lead, s: the rotors' summed squared speeds' first moment over their mean,
-    step_interval_rows): the matrix gains lead [w]x. So f_b = (that matrix)^-1 R_mid^T (a - g e3).
+    (the rotors lagging toward a new command) the mean gains R_mid [w]x m1, m1 the first moment of f_b about
+    the midpoint (moment, FRD m/s: _force_moment). So f_b = (that matrix)^-1 (R_mid^T (a - g e3) - w x m1).
     """
     r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
     g = np.array([0.0, 0.0, gravity])
@@ -217,8 +215,8 @@ def _midpoint_acceleration(
     k = _cross_matrices(rates)
     m = k @ k if dw is None else k @ k - 2.0 * _cross_matrices(dw)
     m = np.eye(3)[None] + m * (dt**2 / 24.0)[:, None, None]
-    if lead is not None:
-        m = m + lead[:, None, None] * k
+    if moment is not None:
+        body = body - np.cross(rates, moment)
     body = np.linalg.solve(m, body[:, :, None])[:, :, 0]
     return np.einsum("nij,nj->ni", r, body) + g
 
@@ -237,15 +235,49 @@ def _rate_moment(
     B_u [first moments of u_i^2] dt (lagged_square_moments) + B_w dw dt^2/12 (the rates' own change).
     Measured on that flight: 6.5e-4 -> 2e-5 rad/s RMS against the dense replay's step means.
     """
-    a = np.column_stack((mean_sq, rates, np.ones(len(mean_sq))))
-    ok = np.isfinite(a).all(axis=1) & np.isfinite(dw).all(axis=1)
-    if ok.sum() < 4 * a.shape[1]:
+    b = _fit_on_rotors(dw, mean_sq, rates)
+    if b is None:
         return np.zeros_like(dw)
-    scale = np.abs(a[ok]).max(axis=0)
-    scale[scale == 0.0] = 1.0
-    b, *_ = np.linalg.lstsq(a[ok] / scale, dw[ok], rcond=None)
-    b = b / scale[:, None]
     return first @ b[:4] * dt[:, None] + np.nan_to_num(dw) @ b[4:7] * (dt**2 / 12.0)[:, None]
+
+
+def _force_moment(f_b: np.ndarray, mean_sq: np.ndarray, first: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """The first moment (M,3) FRD m/s of the rotors' part of the specific force about each step's midpoint.
+
+    The thrust follows the rotors' squared speeds, which lag toward a new command within every step: f_b
+    (M,3, the steps' body specific force, m/s^2) is written as A [mean u_i^2] + c, fitted by least squares
+    over the flight's steps (the thrust coefficients over the mass, tilted rotors included), and the
+    moment is A [first moments of u_i^2] dt (lagged_square_moments). The rest of f_b (drag) changes over a
+    step with the body velocity only, smoothly; taking the moment as f_b's times the rotors' relative one
+    instead made open-loop flights (fast, high rates) worse: fang-chen-buaa paper-validate ax 1 - R^2
+    5.5e-9 -> 9.3e-8.
+    """
+    a = _fit_on_rotors(f_b, mean_sq)
+    if a is None:
+        return np.zeros_like(f_b)
+    return first @ a[:4] * dt[:, None]
+
+
+def _fit_on_rotors(y: np.ndarray, mean_sq: np.ndarray, *extra: np.ndarray) -> np.ndarray | None:
+    """Least-squares coefficients (4 + extra columns + 1, K) of y (M,K) on the steps' mean squared rotor
+    speeds, the extra columns and a constant; three passes dropping rows beyond 6 MADs (the ground's
+    reaction, touchdowns). None when there are too few finite rows."""
+    a = np.column_stack((mean_sq, *extra, np.ones(len(mean_sq))))
+    keep = np.isfinite(a).all(axis=1) & np.isfinite(y).all(axis=1)
+    if keep.sum() < 4 * a.shape[1]:
+        return None
+    scale = np.abs(a[keep]).max(axis=0)
+    scale[scale == 0.0] = 1.0
+    finite = keep.copy()
+    b = np.zeros((a.shape[1], y.shape[1]))
+    for _ in range(3):
+        b, *_ = np.linalg.lstsq(a[keep] / scale, y[keep], rcond=None)
+        res = np.abs(np.nan_to_num(y - (np.nan_to_num(a) / scale) @ b))
+        mad = 1.4826 * np.median(res[keep], axis=0)
+        keep = finite & (res <= 6.0 * mad + 1e-12).all(axis=1)
+        if keep.sum() < 4 * a.shape[1]:
+            return None
+    return b / scale[:, None]
 
 
 def _mean_body_velocity(
@@ -255,7 +287,7 @@ def _mean_body_velocity(
     euler: np.ndarray,
     rates: np.ndarray,
     dw: np.ndarray,
-    lead: np.ndarray,
+    moment: np.ndarray,
     dt: np.ndarray,
     gravity: float,
 ) -> np.ndarray:
@@ -264,8 +296,8 @@ def _mean_body_velocity(
     Body-frame laws (drag, rotor drag) are linear or quadratic in v_b = R^T v, so the row must hold the
     interval mean of v_b. The mean of the ends' velocities v_ends misses it at second order in dt:
     - the velocity's own curvature: mean v = v_ends - the first moment of a about the midpoint, which is
-      R_mid (lead f_b + w x f_b dt^2/12) with f_b the body specific force (the thrust's moment over the step,
-      the one _midpoint_acceleration uses, and the body's turn under it);
+      R_mid (m1 + w x f_b dt^2/12) with f_b the body specific force (m1 = moment, the rotors' part's first
+      moment over the step, the one _midpoint_acceleration uses; and the body's turn under f_b);
     - the body's turn: with R(s) = R_mid exp([w s + dw (s^2/2 - dt^2/8)]x) about the quaternion midpoint,
       mean v_b = R_mid^T mean v - w x (R_mid^T a) dt^2/12 + dw x v_b dt^2/12 + w x (w x v_b) dt^2/24.
     The dw term is the largest: a motor PRBS (dw ~ 100 rad/s^2) at 1 m/s puts 1.3e-4 m/s into v_b, and a
@@ -274,8 +306,7 @@ def _mean_body_velocity(
     r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
     f_b = np.einsum("nji,nj->ni", r, a_mid - np.array([0.0, 0.0, gravity]))
     h2 = (dt**2 / 12.0)[:, None]
-    moment = lead[:, None] * f_b + h2 * np.cross(rates, f_b)
-    v_b = np.einsum("nji,nj->ni", r, v_ends) - moment
+    v_b = np.einsum("nji,nj->ni", r, v_ends) - moment - h2 * np.cross(rates, f_b)
     a_b = np.einsum("nji,nj->ni", r, a_mean)
     v_b = v_b + h2 * (np.cross(dw, v_b) - np.cross(rates, a_b) + 0.5 * np.cross(rates, np.cross(rates, v_b)))
     return np.einsum("nij,nj->ni", r, v_b)
