@@ -93,7 +93,7 @@ from identification.collinearity import term_t_ratios  # noqa: E402
 from identification.dataset import Dataset, load_dataset  # noqa: E402
 from identification.effects_physics import Effects, body_expressions, flight_rows  # noqa: E402
 from identification.engine_settings import SelectionSettings  # noqa: E402
-from identification.height_law import height_law_error, height_terms  # noqa: E402
+from identification.height_law import body_values, height_law_error, height_terms  # noqa: E402
 from identification.identify import DEFAULT_BUDGET, identify  # noqa: E402
 from identification.kinematics import rotation_matrix_sym  # noqa: E402
 from identification.library import DEFAULT_GROUPS, Feature, build_library, compile_features  # noqa: E402
@@ -398,13 +398,18 @@ class Row:
 
 
 def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, gravity: float,
-                         weak: bool, min_t: float = SelectionSettings().min_t) -> dict[str, list[str]]:
+                         weak: bool, min_t: float = SelectionSettings().min_t,
+                         height_law: dict[str, sympy.Expr] | None = None) -> dict[str, list[str]]:
     """Per body-frame target, the true terms this training flight cannot pin down even given the true
     structure: least squares of the target (weak: integrated against the test functions, as the engine
     sees it) on every true term and a constant, and the terms whose t ratio (identification.collinearity,
     its effective rows AR(1) on point rows, summed over the test functions' overlap on weak rows:
     effective_rows) is below min_t, the t the engine's pick demands of its own terms. Those terms are
-    listed apart and neither counted missing nor held to the coefficient floor."""
+    listed apart and neither counted missing nor held to the coefficient floor. height_law: a ground
+    effect's height-dependent part per target (height_law_reference), no monomial, so body_reference holds
+    the vehicle's no-ground terms only; it is part of the true structure, one more column (with its own
+    coefficient, no t asked of it): without it a flight near the ground leaves the law in the residual
+    and every other term's t falls with it."""
     X = np.hstack([train.xi, train.u])
     names = tuple(PRIMITIVES)
     P = primitive_matrix(X, names)
@@ -418,6 +423,9 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
         with np.errstate(all="ignore"):
             cols = np.column_stack([np.broadcast_to(np.asarray(c, float), (len(X),))
                                     for c in fn(*P.T)])
+        law = (height_law or {}).get(target, sympy.Integer(0))
+        if law != 0:
+            cols = np.column_stack([cols, body_values(law, X)])
         y = Y[:, j]
         ok = np.all(np.isfinite(cols), axis=1) & np.isfinite(y)
         cols, y = np.hstack([np.ones((int(ok.sum()), 1)), cols[ok]]), y[ok]
@@ -428,7 +436,7 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
         t, _ = term_t_ratios(cols, y, lag)
         if t is None:
             continue
-        out[target] = [expression_to_string(k) for k, tk in zip(terms, t[1:], strict=True)
+        out[target] = [expression_to_string(k) for k, tk in zip(terms, t[1 : 1 + len(terms)], strict=True)
                        if not tk >= min_t]
     return out
 
@@ -657,7 +665,8 @@ def main() -> int:
         if weak_case:
             raw_train, raw_val = (load_dataset(p, targets="sensors", sensor_settings=RAW_SENSOR_TARGETS,
                                                gravity=gravity) for p in tlogs)
-        hidden = unidentifiable_terms(body_reference, raw_train if weak_case else train, gravity, weak_case)
+        hidden = unidentifiable_terms(body_reference, raw_train if weak_case else train, gravity, weak_case,
+                                      height_law=height_reference)
         if any(hidden.values()):
             listed = "; ".join(f"{k}: {', '.join(v)}" for k, v in hidden.items() if v)
             print(f"  true terms this training flight cannot pin down (t < {SelectionSettings().min_t:g} "

@@ -1,7 +1,9 @@
 """An excitation flight through PX4 OFFBOARD (`quadsr excite --autopilot`): body-rate and thrust setpoints.
 
-The closed-loop profile's reference (take-off, climb, settle, a slow Lissajous path with a turning heading),
-its signal (PRBS or chirp) and its fading near the box and tilt limits, flown as a real vehicle's companion
+The closed-loop profile's reference (take-off, climb, settle, a slow Lissajous path with a turning heading;
+with a `schedule`, its hover heights and yaw rates), its signal (PRBS or chirp; a rotor-speed `collective`
+is not used here: thrust_amplitude is the collective channel) and its fading near the box and tilt limits,
+flown as a real vehicle's companion
 would: the hover stabiliser's outer loops on PX4's estimate (LOCAL_POSITION_NED, ATTITUDE_QUATERNION at
 rate_hz of PX4's clock) give body rates FRD (rad/s) and the collective thrust (N); the excitation is added to
 the rates and the thrust; SET_ATTITUDE_TARGET carries them (thrust normalised through PX4's thrust model

@@ -66,6 +66,7 @@ def test_closed_loop_from_the_ground(tmp_path):
     flight = fly(tmp_path, [], ["--profile", "closed-loop", "--duration", "9", "--seed", "2"])
     fit = validate_r2(tmp_path, flight)
     assert len(fit) == 6 and min(fit.values()) >= R2_FLOOR, fit
-    # the vehicle left the ground and met the ground effect on the way (its rows near z = 0 are in the fit)
+    # the vehicle left the ground and met the ground effect on the way (its rows near z = 0 are in the fit),
+    # then climbed to the profile's first hover height (2 m) far above it
     height = -load_dataset(flight).xi[:, 2]
-    assert height.min() < 0.2 and height.max() > 3.0
+    assert height.min() < 0.2 and height.max() > 1.8

@@ -31,3 +31,20 @@ def test_a_term_below_the_noise_is_not_identifiable_and_the_torques_are():
     assert "wx" in hidden["dwx"] and "wy" in hidden["dwy"]
     assert not any(t.startswith("u") for t in hidden["dwx"] + hidden["dwy"] + hidden["dwz"])
     assert hidden["fx"] == [] and hidden["fz"] == []
+
+
+def test_a_height_law_left_out_of_the_true_structure_hides_the_other_terms():
+    """A flight near the ground with a ground effect: the law (no monomial on a SITL vehicle, so scored apart)
+    is part of the true structure; left out, its share of the targets is residual and the other terms' t
+    ratios fall with it, so a flight rich in low hovers would be scored as identifying less."""
+    case = discovery.Case("ground effect", discovery.Effects(ground_effect=0.08), height=(0.3, 3.0))
+    train = discovery.synthetic(case, 2000, seed=4)
+    full = discovery.body_expressions(discovery.VEHICLE, case.effects)
+    far = discovery.body_expressions(discovery.VEHICLE, discovery.Effects())
+    law = {n: full[n] - far[n] for n in full}
+    assert law["fz"] != 0
+    gravity = 9.8
+    given_law = discovery.unidentifiable_terms(far, train, gravity, weak=False, height_law=law)
+    assert given_law == {n: [] for n in far}  # noise-free rows, the whole true structure: every term pinned
+    without = discovery.unidentifiable_terms(far, train, gravity, weak=False)
+    assert any(without.values()), without  # the law in the residual: some true term's t below min_t

@@ -146,7 +146,7 @@ def test_closed_loop_takes_off_and_stays_inside_its_limits(vehicle):
     t = np.arange(len(xs)) * 0.004
     exciting = t >= prof.excitation_start
     alt = -xs[:, 2]
-    assert alt[0] == 0.0 and alt[t > 3.0].min() > 1.0  # took off from the ground
+    assert alt[0] == 0.0 and alt[(t > 2.0) & ~exciting].min() > 1.5  # took off from the ground
     tilt = np.degrees(np.arccos(np.cos(xs[:, 6]) * np.cos(xs[:, 7])))
     assert tilt.max() < prof.tilt_limit
     assert np.abs(xs[exciting, :2]).max() < prof.box_half_width
@@ -173,5 +173,132 @@ def test_excitation_backs_off_near_the_limits(vehicle):
     xi[6] = math.radians(prof.tilt_limit - 0.25 * prof.backoff_tilt)
     assert gen.limit_scale(xi) == pytest.approx(0.25, abs=1e-6)
     xi[6] = 0.0
-    xi[2] = -(prof.box_altitude[0] + 0.2)  # 0.2 m above the floor of the box
-    assert gen.limit_scale(xi) == pytest.approx(0.2)
+    # near the floor the per-motor excitation fades over backoff.height, the collective over backoff.distance
+    xi[2] = -(prof.box_altitude[0] + 0.5 * prof.backoff_height)
+    assert gen.limit_scale(xi) == pytest.approx(0.5)
+    assert gen.collective_limit_scale(xi) == pytest.approx(0.5 * prof.backoff_height / prof.backoff_distance)
+    xi[2] = -(prof.box_altitude[0] + 0.2)  # 0.2 m above the floor of the box, at rest: full per-motor
+    assert gen.limit_scale(xi) == 1.0
+    xi[5] = 0.2 / prof.backoff_lookahead  # descending: in the lookahead the floor is 0.2 m nearer
+    assert gen.limit_scale(xi) == 0.0 and gen.collective_limit_scale(xi) == 0.0
+    xi[5] = -1.0  # climbing away from the floor: as at rest
+    assert gen.limit_scale(xi) == 1.0
+
+
+def _schedule_profile(tmp_path, **schedule):
+    base = yaml.safe_load((profiles_dir() / "closed-loop.yaml").read_text())
+    return load_profile(_write(tmp_path, dict(base, schedule=dict(base["schedule"], **schedule))))
+
+
+def test_schedule_mistakes_name_the_key(tmp_path):
+    base = yaml.safe_load((profiles_dir() / "closed-loop.yaml").read_text())
+    with pytest.raises(UserError, match=r"schedule\.altitudes\[1\]' must lie inside box\.altitude"):
+        _schedule_profile(tmp_path, altitudes=[2.0, 0.1])  # below the box floor (0.15 m)
+    with pytest.raises(UserError, match=r"schedule\.altitudes\[0\]' must lie inside box\.altitude"):
+        _schedule_profile(tmp_path, altitudes=[5.5])  # its 0.8 m swing reaches the 6 m ceiling
+    with pytest.raises(UserError, match=r"schedule\.altitudes' must be a non-empty list of numbers"):
+        _schedule_profile(tmp_path, altitudes=[])
+    with pytest.raises(UserError, match=r"schedule\.yaw_rates\[1\]' must be a number"):
+        _schedule_profile(tmp_path, yaw_rates=[1.0, "fast"])
+    with pytest.raises(UserError, match=r"schedule\.yaw_rates\[0\]' must be within \+-4 rad/s"):
+        _schedule_profile(tmp_path, yaw_rates=[-5.0, 1.0])
+    with pytest.raises(UserError, match=r"schedule\.move_speed' too slow: the longest move"):
+        _schedule_profile(tmp_path, move_speed=0.3)  # 2.0 -> 0.3 m at 0.3 m/s: 8.9 s of a 7 s segment
+    with pytest.raises(UserError, match=r"schedule\.yaw_acceleration' too low"):
+        _schedule_profile(tmp_path, yaw_acceleration=0.5)  # -1.5 -> 1.5 rad/s: 6 s of a 7 s segment
+    with pytest.raises(UserError, match=r"schedule\.segment' must be > 0"):
+        _schedule_profile(tmp_path, segment=0)
+    with pytest.raises(UserError, match=r"unknown key 'schedule\.heights'"):
+        _schedule_profile(tmp_path, heights=[1.0])
+    bad = dict(base, reference=dict(base["reference"], yaw_rate=1.0))
+    with pytest.raises(UserError, match=r"reference\.yaw_rate' is not used with a schedule"):
+        load_profile(_write(tmp_path, bad))
+    bad = dict(base, excitation=dict(base["excitation"], collective=-5.0))
+    with pytest.raises(UserError, match=r"excitation\.collective' must be >= 0"):
+        load_profile(_write(tmp_path, bad))
+    backoff = dict(base["excitation"]["backoff"], height=0)
+    bad = dict(base, excitation=dict(base["excitation"], backoff=backoff))
+    with pytest.raises(UserError, match=r"excitation\.backoff\.height' must be > 0"):
+        load_profile(_write(tmp_path, bad))
+
+
+def test_profiles_without_a_schedule_keep_their_reference(vehicle):
+    prof = load_profile("px4-offboard")
+    assert prof.schedule is None and prof.collective == 0.0 and prof.backoff_height is None
+    gen = ClosedLoopExcitation(prof, vehicle, 0, prof.duration, np.zeros(12))
+    te = 3.0
+    ref = gen.reference(prof.excitation_start + te)
+    assert ref.position[2] == pytest.approx(-prof.takeoff_altitude
+                                            + prof.reference_amplitude[2] * math.sin(2 * math.pi / 6.1 * te))
+    assert ref.yaw == pytest.approx(math.remainder(prof.yaw_rate * te, 2 * math.pi))
+
+
+def test_schedule_reference_visits_every_height_and_turns_both_ways(vehicle):
+    prof = load_profile("closed-loop")
+    sc = prof.schedule
+    gen = ClosedLoopExcitation(prof, vehicle, 0, 60.0, np.zeros(12))
+    t = np.arange(prof.excitation_start, prof.excitation_start + len(sc.altitudes) * sc.segment, 0.004)
+    refs = [gen.reference(tk) for tk in t]
+    te = t - prof.excitation_start
+    centre = np.array([gen.height(x)[0] for x in te])
+    rate = np.array([gen.yaw_rate(x) for x in te])
+    yaw = np.unwrap([r.yaw for r in refs])
+    # each segment ends at its height, held; low hovers near the ground and cruise heights both
+    for k, h in enumerate(sc.altitudes):
+        end = (te > (k + 0.6) * sc.segment) & (te < (k + 1) * sc.segment)
+        assert np.allclose(centre[end], h)
+    assert min(sc.altitudes) <= 0.3 and max(sc.altitudes) >= 1.5
+    # the moves are smooth: no jump in the hover height, its speed at most move_speed
+    assert np.abs(np.diff(centre)).max() <= sc.move_speed * 0.004 + 1e-9
+    # the vertical swing stays above the box floor, a low hover swings little
+    z = -np.array([r.position[2] for r in refs])
+    assert z.min() > prof.box_altitude[0] and np.ptp(z[centre == min(sc.altitudes)]) < 0.2
+    # the heading turns both ways at several rates, continuously (ramped yaw rate, no heading jump)
+    held = rate[np.abs(np.diff(rate, prepend=rate[0])) < 1e-9]  # the rates held after each ramp
+    assert rate.max() >= 1.0 and rate.min() <= -1.0 and len(set(np.round(held, 6))) >= 5
+    assert np.abs(np.diff(rate)).max() <= sc.yaw_acceleration * 0.004 + 1e-9
+    assert np.allclose(np.diff(yaw) / 0.004, 0.5 * (rate[1:] + rate[:-1]), atol=1e-6)
+    # the yaw rate is not the height's: both signs at low and at cruise heights over the two lists' cycle
+    te_all = np.arange(0.0, 35 * sc.segment, 0.1)
+    c = np.array([gen.height(x)[0] for x in te_all])
+    r = np.array([gen.yaw_rate(x) for x in te_all])
+    assert abs(np.corrcoef(c, r)[0, 1]) < 0.1
+
+
+def test_default_closed_loop_flight_varies_height_rotor_sum_and_yaw_rate():
+    """The default profile flown on the SITL's dynamics (every aerodynamic effect and the ground): inside its
+    limits, half of it below 1 m, the rotor sum varied well beyond the per-motor PRBS's, yaw rates of both
+    signs, and per-motor PRBS left as it was (the collective has its own random sequence)."""
+    from bridge.vehicle import load_vehicle
+
+    aero = load_vehicle("fang-chen-aero")
+    prof = load_profile("closed-loop")
+    gen, xs, us, scales = _fly_in_process(aero, prof, duration=40.0, seed=1)
+    t = np.arange(len(xs)) * 0.004
+    exciting = t >= prof.excitation_start
+    alt = -xs[exciting, 2]
+    tilt = np.degrees(np.arccos(np.cos(xs[:, 6]) * np.cos(xs[:, 7])))
+    assert alt.min() > prof.box_altitude[0] and alt.max() < prof.box_altitude[1]
+    assert tilt.max() < prof.tilt_limit and np.abs(xs[exciting, :2]).max() < prof.box_half_width
+    assert np.mean(alt < 1.0) > 0.4 and np.mean(alt < 0.5) > 0.15 and alt.min() < 0.35
+    assert np.median(alt) < 1.2 and alt.max() > 1.8
+    rotor_sum = us[exciting].sum(axis=1)
+    assert rotor_sum.std() / rotor_sum.mean() > 0.15  # 0.09 with the per-motor PRBS alone
+    wz = xs[exciting, 11]
+    assert np.mean(wz > 0.5) > 0.2 and np.mean(wz < -0.5) > 0.2
+    assert abs(np.corrcoef(wz, alt)[0, 1]) < 0.3
+    # a rate damping w stands apart from the rotor drag's w*u_j: its VIF beside them
+    wx = xs[exciting, 9]
+    A = np.column_stack([wx[:, None] * us[exciting], np.ones(len(wx))])
+    resid = wx - A @ np.linalg.lstsq(A, wx, rcond=None)[0]
+    assert np.var(wx) / np.var(resid) < 60  # ~110 with the per-motor PRBS alone
+    assert scales[exciting].mean() > 0.8  # the per-motor PRBS is rarely faded
+    # the collective's own generator: the per-motor levels are the same sequence as without it
+    from dataclasses import replace
+
+    plain = ClosedLoopExcitation(replace(prof, collective=0.0), aero, 1, 40.0, np.zeros(12))
+    with_c = ClosedLoopExcitation(prof, aero, 1, 40.0, np.zeros(12))
+    for k in range(500):
+        a, b = plain.signal(k * 0.004), with_c.signal(k * 0.004)
+        with_c.collective_signal(k * 0.004)
+        assert np.array_equal(a, b)
