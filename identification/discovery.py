@@ -393,36 +393,27 @@ class DiscoveryEngine:
                 cur = pick_pred(current)
                 t = {id(c): paired_loss_t(yv, pick_pred(c), cur, loss, s.polish_blocks) for c in ok}
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
-                grows = [c for c in ok if s.polish_grow
-                         and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
+                grows = {id(c) for c in ok if s.polish_grow
+                         and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)}
                 better = [c for c in ok if t[id(c)] < -s.polish_z and (
-                    c.complexity <= current.complexity or any(c is g for g in grows))]
+                    c.complexity <= current.complexity or id(c) in grows)]
                 simpler = [c for c in ok if c.complexity < current.complexity and t[id(c)] <= s.polish_z
                            and c.holdout_loss <= limit]
-                if better:
-                    current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
-                elif simpler:
-                    current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
-                else:
-                    break
-                best_seen = min(best_seen, float(current.holdout_loss))
             elif s.polish_rule == "tolerance":
                 better = [c for c in ok
                           if current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)]
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
                 simpler = [c for c in ok if c.complexity < current.complexity and c.holdout_loss <= limit]
-                if better:
-                    current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
-                elif simpler:
-                    current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
-                else:
-                    break
-                best_seen = min(best_seen, float(current.holdout_loss))
-            else:
+            else:  # "margin": a lower pick loss by _better's margin, no simpler moves
                 better = [c for c in ok if _better(c, current, scale)]
-                if not better:
-                    break
+                simpler = []
+            if better:
                 current = min(better, key=lambda c: (c.holdout_loss, c.complexity))
+            elif simpler:
+                current = min(simpler, key=lambda c: (c.complexity, c.holdout_loss))
+            else:
+                break
+            best_seen = min(best_seen, float(current.holdout_loss))
             out.append(current)
             terms = _product_factors(current.expression)
             if not terms:

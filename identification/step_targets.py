@@ -180,8 +180,8 @@ def step_interval_rows(
         r = rotation_matrix(xi[:, 6], xi[:, 7], xi[:, 8])
         rough = np.einsum("nji,nj->ni", r, a_mean - np.array([0.0, 0.0, gravity]))  # f_b, to fit the map
         moment = _force_moment(rough, mean_sq, first, dt[:, 0])
-        a_mid = _midpoint_acceleration(a_mean, xi[:, 6:9], xi[:, 9:12], dt[:, 0], gravity, dw_mean, moment)
-        xi[:, 3:6] = _mean_body_velocity(xi[:, 3:6], a_mean, a_mid, xi[:, 6:9], xi[:, 9:12], dw_mean,
+        a_mid = _midpoint_acceleration(a_mean, r, xi[:, 9:12], dt[:, 0], gravity, dw_mean, moment)
+        xi[:, 3:6] = _mean_body_velocity(xi[:, 3:6], a_mean, a_mid, r, xi[:, 9:12], dw_mean,
                                          moment, dt[:, 0], gravity)
     targets = np.concatenate((a_mid, dw_mean), axis=1)
     u_mid = np.sqrt(np.maximum(mean_sq, 0.0))
@@ -190,14 +190,15 @@ def step_interval_rows(
 
 def _midpoint_acceleration(
     a_mean: np.ndarray,
-    euler: np.ndarray,
+    r: np.ndarray,
     rates: np.ndarray,
     dt: np.ndarray,
     gravity: float,
     dw: np.ndarray | None = None,
     moment: np.ndarray | None = None,
 ) -> np.ndarray:
-    """NED acceleration (M,3) m/s^2 at the step's midpoint attitude from its mean over the step.
+    """NED acceleration (M,3) m/s^2 at the step's midpoint attitude (r: body->NED matrices, (M,3,3)) from
+    its mean over the step.
 
     The body turns during a step: with the specific force f_b held and the rates w (FRD rad/s) constant,
     the mean of R(t) f_b is R_mid (I + [w]x^2 dt^2/24) f_b, not R_mid f_b (6.7e-4 of the thrust at 30 rad/s,
@@ -209,7 +210,6 @@ def _midpoint_acceleration(
     (the rotors lagging toward a new command) the mean gains R_mid [w]x m1, m1 the first moment of f_b about
     the midpoint (moment, FRD m/s: _force_moment). So f_b = (that matrix)^-1 (R_mid^T (a - g e3) - w x m1).
     """
-    r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
     g = np.array([0.0, 0.0, gravity])
     body = np.einsum("nji,nj->ni", r, a_mean - g)
     k = _cross_matrices(rates)
@@ -284,7 +284,7 @@ def _mean_body_velocity(
     v_ends: np.ndarray,
     a_mean: np.ndarray,
     a_mid: np.ndarray,
-    euler: np.ndarray,
+    r: np.ndarray,
     rates: np.ndarray,
     dw: np.ndarray,
     moment: np.ndarray,
@@ -303,7 +303,6 @@ def _mean_body_velocity(
     The dw term is the largest: a motor PRBS (dw ~ 100 rad/s^2) at 1 m/s puts 1.3e-4 m/s into v_b, and a
     rotor drag of 0.34 m/s^2 per m/s made spurious wb*(u1^2 - u2^2 + u3^2 - u4^2) terms in fx of it.
     """
-    r = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
     f_b = np.einsum("nji,nj->ni", r, a_mid - np.array([0.0, 0.0, gravity]))
     h2 = (dt**2 / 12.0)[:, None]
     v_b = np.einsum("nji,nj->ni", r, v_ends) - moment - h2 * np.cross(rates, f_b)
