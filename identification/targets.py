@@ -151,6 +151,7 @@ def nominal_step(t: np.ndarray) -> float:
 
 # Finite-difference stencils (offsets, weights) for d/dt at offset 0, in units of 1/dt, by preference.
 _CENTRAL5 = ((-2, -1, 1, 2), (1 / 12, -8 / 12, 8 / 12, -1 / 12))
+_CENTRAL7 = ((-3, -2, -1, 1, 2, 3), (-1 / 60, 9 / 60, -45 / 60, 45 / 60, -9 / 60, 1 / 60))  # 6th order
 _ONE_SIDED4 = (((0, 1, 2, 3), (-11 / 6, 3.0, -1.5, 1 / 3)), ((-3, -2, -1, 0), (-1 / 3, 1.5, -3.0, 11 / 6)))
 _CENTRAL3 = ((-1, 1), (-0.5, 0.5))
 _ONE_SIDED3 = (((0, 1, 2), (-1.5, 2.0, -0.5)), ((-2, -1, 0), (0.5, -2.0, 1.5)))
@@ -161,7 +162,8 @@ def kink_aware_derivative(y: np.ndarray, dt: float, kinks: np.ndarray) -> np.nda
     """d/dt of uniform y (N,k) whose slope may jump at samples where kinks (N,) is True.
 
     A stencil is usable at sample i if it lies inside the run and has no kink strictly inside its span.
-    Preference: 5-point central; mean of the usable 4-point one-sided ones; 3-point central; mean of the
+    Preference: 7-point central (6th order: the motor lag's transient after a kink has large high
+    derivatives); 5-point central; mean of the usable 4-point one-sided ones; 3-point central; mean of the
     usable 3-point one-sided ones; then 2-point. The two samples at each end get NaN, like the 5-point rule.
     """
     y = np.asarray(y, dtype=float)
@@ -186,7 +188,7 @@ def kink_aware_derivative(y: np.ndarray, dt: float, kinks: np.ndarray) -> np.nda
         offsets, weights = stencil
         return sum(w * y[rows + o] for o, w in zip(offsets, weights, strict=True)) / dt
 
-    for group in ((_CENTRAL5,), _ONE_SIDED4, (_CENTRAL3,), _ONE_SIDED3, _ONE_SIDED2):
+    for group in ((_CENTRAL7,), (_CENTRAL5,), _ONE_SIDED4, (_CENTRAL3,), _ONE_SIDED3, _ONE_SIDED2):
         masks = [usable(s[0]) & ~done for s in group]
         any_ok = np.logical_or.reduce(masks)
         if not any_ok.any():
