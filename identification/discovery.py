@@ -17,7 +17,10 @@ In the spirit of SISSO (Ouyang et al. 2018), per target:
 6. the pick is polished by term substitution (DiscoveryEngine._polish): one term swapped for one pool
    feature, or removed, at a time; a move is kept when the pick's identification rules hold and (rule
    "occam") its pick-row loss is lower by more than noise at no more complexity, or it lowers the complexity
-   without being worse by more than noise and within the pick's tolerance (the pick then decides).
+   without being worse by more than noise and within the pick's tolerance (the pick then decides). Before
+   that, a model only the VIF rule sets aside (the pick without it) is rewritten by merging two of its terms
+   into one feature (DiscoveryEngine._merge_repair): a family of terms written in a basis the VIF rule rejects
+   and in another it accepts (u2 wz + u4 wz beside wz (u1+u2+u3+u4) for wz (u1-u2+u3-u4)).
 The engine learns in the body frame (`frame = "body"`): targets fx fy fz (specific force FRD, m/s^2) and
 dwx dwy dwz (FRD, rad/s^2); candidates' expressions are in the primitive names (identification.body_frame).
 Budgets are counts, not seconds (the time budget is ignored), so the same seed gives the same model.
@@ -285,6 +288,10 @@ class DiscoveryEngine:
             self.timings["operon"] = time.perf_counter() - op_start
         if candidates and s.polish_passes > 0:
             polish_start = time.perf_counter()
+            if s.polish_merge:  # the model the VIF rule alone sets aside, rewritten by merges (_merge_repair)
+                loose = select(candidates, self._no_vif_rule(), scale=scale)
+                if not admissible(loose, self.selection) and admissible(loose, self._no_vif_rule()):
+                    candidates += self._merge_repair(loose, columns, F, y, X, Xh, yh, loss, scale)
             pick = select(candidates, self.selection, scale=scale)
             candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale,
                                        pick_limit(candidates, self.selection, scale))
@@ -420,6 +427,75 @@ class DiscoveryEngine:
                 break
         self.stats["polish_swaps"] = len(out)
         return out
+
+    def _no_vif_rule(self) -> SelectionSettings:
+        """The pick's rules without the VIF rule (the t rule kept): what the merge repair starts from."""
+        return dataclasses.replace(self.selection, max_vif=float("inf"))
+
+    def _merge_repair(
+        self,
+        start: Candidate,
+        columns: _Columns,
+        F: np.ndarray,
+        y: np.ndarray,
+        X: np.ndarray,
+        Xh: np.ndarray,
+        yh: np.ndarray,
+        loss: str,
+        scale: float,
+    ) -> list[Candidate]:
+        """Merge repair of a model the VIF rule sets aside (DiscoverySettings.polish_merge): two of its terms
+        merged into one feature so that the model passes the pick's rules. A term's VIF among
+        the terms of one family (one factor times combinations of the rotors) depends on how the family is
+        written: closed-loop aero's dwz picked by the t rule alone, wz (u1+u2+u3+u4) + u2 wz + u4 wz + wz
+        (coefficients of u2 wz and u4 wz equal), has VIF 199 on wz (u1+u2+u3+u4); the same fit with u2 wz and
+        u4 wz merged into wz (u1-u2+u3-u4) (a signed sum of the space, in the span of the two and the sum)
+        is the true structure at VIF 36, one parameter fewer. Each step ranks every (pair of terms, feature
+        of the grown space) merge by the merged model's least-squares residual on the fit rows (term_merges:
+        one QR of the model, one projection of the features; the whole space, not the pool: the pool keeps
+        independent columns only, so a combination of two pool features, the merge that rewrites a family,
+        is usually not in it), refits the best `polish_tries` as the polish does (_linear_candidate) and
+        keeps those that pass the pick's rules (t ratio and VIF), are not worse than `start` on the pick rows
+        by more than polish_z standard errors (paired_loss_t) and are within the pick's tolerance of its loss
+        (within_tolerance): a merge that drops a direction the fit needs is worse (a tied pair with cancelling
+        coefficients fitting what no single feature holds, the targets' errors, keeps it only as the pair),
+        and a merged term must pass the t rule, so such a model is still set aside (the repair returns
+        nothing and the VIF rule stands: tests/test_discovery_merge.py). Returns [the lowest-loss one kept],
+        [] when none is: one merge, not a chain (on sitl ground effect two more steps, each from the merge
+        with the lowest VIF, found nothing and cost 4.5 s CPU). The pick weighs what it returns as any
+        candidate (and the polish may start from it)."""
+        s, sel = self.settings, self.selection
+        terms = _product_factors(start.expression)
+        if len(terms) < 2 or start.holdout_loss is None or not np.isfinite(start.holdout_loss):
+            return []
+        weak, weak_h = self.weak or (None, None)
+        lag = self._weak_lag()
+        prims = list(columns.space.primitives)
+        exprs = columns.space.expressions
+        constant = any(t.is_number for t in sympy.Add.make_args(start.expression))
+        yv = yh if weak_h is None else weak_h @ yh
+
+        def pick_pred(c: Candidate) -> np.ndarray:
+            pred = c.evaluate(Xh)
+            return pred if weak_h is None else weak_h @ pred
+
+        reference = pick_pred(start)
+        limit = within_tolerance(float(start.holdout_loss), sel, scale)
+        M = _lambdify(prims, terms)(columns.primitives(X))
+        if weak is not None:
+            M = np.asarray(weak @ M)
+        ranked = [(j, k, f) for j, k, f, _rss in term_merges(M, F, y) if exprs[f] not in terms]
+        tried: list[Candidate] = []
+        for j, k, f in ranked[: s.polish_tries]:
+            shapes = [t for m, t in enumerate(terms) if m not in (j, k)] + [exprs[f]]
+            c = self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant)
+            if c is not None:
+                tried.append(c)
+        attach_holdout(tried, Xh, yh, loss, weak_h)
+        passing = [c for c in tried if admissible(c, sel) and c.holdout_loss is not None
+                   and np.isfinite(c.holdout_loss) and c.holdout_loss <= limit
+                   and paired_loss_t(yv, pick_pred(c), reference, loss, s.polish_blocks) <= s.polish_z]
+        return [min(passing, key=lambda c: (c.holdout_loss, c.complexity))] if passing else []
 
     def _linear_candidate(
         self,
@@ -948,6 +1024,62 @@ def term_substitutions(
         if not np.isfinite(new[j, f]):
             break
         out.append((j, f, float(new[j, f])))
+    return out
+
+
+def term_merges(
+    M: np.ndarray, C: np.ndarray, y: np.ndarray, tol: float = 1e-10, block: int = 1024
+) -> list[tuple[int, int, int, float]]:
+    """Every merge of two model terms into one candidate feature, ranked by the merged model's least-squares
+    residual sum of squares on y (N,) (with a constant): [(term j, term k (j < k), candidate f, RSS)], lowest
+    first (stable). M (N,k): the model's term columns; C (N,m): the candidates'. One QR of the model and one
+    projection of the candidates serve every merge: the columns of Q R^-T (A = [1, M] = Q R) are the dual
+    directions, each orthogonal to every other column of A, so the directions of terms j and k (orthonormal
+    W in Q's coordinates: a 2 x 2 QR per pair), span what the model loses without them; removing both adds
+    |W.y|^2 to the RSS and W (W.c) to each candidate's part outside the model, so RSS(j, k -> f) = RSS +
+    |W.y|^2 - (r.c_perp + (W.y).(W.c))^2 / (|c_perp|^2 + |W.c|^2), r the model's residual (term_substitutions
+    for one term). A candidate inside the span of the model without j and k (no new direction), or not
+    finite, is left out; one inside the full model's span is kept (a combination of j and k: the merge that
+    rewrites a family). Empty with fewer than two terms or dependent columns. The candidates are taken
+    `block` columns at a time (memory). Units: y's squared."""
+    n, k = M.shape
+    if k < 2 or not np.all(np.isfinite(M)):
+        return []
+    q, r_ = np.linalg.qr(np.hstack([np.ones((n, 1)), M]))
+    if np.min(np.abs(np.diag(r_))) <= 1e-12 * np.max(np.abs(np.diag(r_))):
+        return []
+    B = np.linalg.inv(r_).T  # the dual directions in q's coordinates
+    qy = q.T @ y
+    resid = y - q @ qy
+    rss = float(resid @ resid)
+    pairs = [(j, l) for j in range(k) for l in range(j + 1, k)]
+    W = [np.linalg.qr(B[:, [j + 1, l + 1]])[0] for j, l in pairs]
+    wy = np.stack([w.T @ qy for w in W])  # (pairs, 2)
+    new = np.full((len(pairs), C.shape[1]), np.inf)
+    for start in range(0, C.shape[1], block):  # bounded memory over a large feature space
+        part = C[:, start : start + block]
+        finite = np.all(np.isfinite(part), axis=0)
+        part = np.where(finite, part, 0.0)
+        qC = q.T @ part
+        Cp = part - q @ qC
+        num0 = resid @ Cp
+        den0 = np.sum(Cp * Cp, axis=0)
+        size = np.sum(part * part, axis=0)
+        for p, w in enumerate(W):
+            wc = w.T @ qC
+            num = num0 + wy[p] @ wc
+            den = den0 + np.sum(wc * wc, axis=0)
+            usable = finite & (den > tol * np.maximum(size, 1e-300))
+            with np.errstate(all="ignore"):
+                new[p, start : start + part.shape[1]] = np.where(
+                    usable, rss + float(wy[p] @ wy[p]) - num * num / np.where(usable, den, 1.0), np.inf)
+    order = np.argsort(new, axis=None, kind="stable")
+    out = []
+    for idx in order:
+        p, f = divmod(int(idx), new.shape[1])
+        if not np.isfinite(new[p, f]):
+            break
+        out.append((pairs[p][0], pairs[p][1], f, float(new[p, f])))
     return out
 
 

@@ -123,6 +123,13 @@ class DiscoverySettings:
     # "occam" only: also take a better move that raises the complexity, when it beats the current model by the
     # pick's tolerance too (measured: on closed-loop aero it wrote fz's wz^3 as wz^2 (u1^2+..+u4^2), 3 extras)
     polish_grow: bool = False
+    # merge repair (DiscoveryEngine._merge_repair): when the pick without the VIF rule (the t rule kept) is a
+    # model the VIF rule sets aside, two of its terms merged into one feature of the space (the polish_tries
+    # best merges by least squares, term_merges), kept when it passes the rules and is not worse than that
+    # model by more than polish_z standard errors nor beyond the pick's tolerance; the VIF of a term among
+    # combinations of one family depends on how they are written (closed-loop aero's dwz: wz (u1+u2+u3+u4)
+    # + u2 wz + u4 wz + wz, VIF 199, is wz (u1+u2+u3+u4) + wz (u1-u2+u3-u4) + wz, VIF 36, the true structure)
+    polish_merge: bool = True
 
 
 @dataclass(frozen=True)
