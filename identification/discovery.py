@@ -343,33 +343,22 @@ class DiscoveryEngine:
         returned (each accepted move's model) join the others for identify's pick."""
         s = self.settings
         sel = self.selection
-        prims = list(columns.space.primitives)
         terms = _product_factors(pick.expression)
         if not terms or pick.holdout_loss is None or not np.isfinite(pick.holdout_loss):
             return []
-        weak, weak_h = self.weak or (None, None)
-        lag = self._weak_lag()
         exprs = columns.space.expressions
         sizes = {i: complexity(exprs[i]) for i in pool}
         # the constant stays in (or out) as in the pick: a swap changes one term, not the constant's
         constant = any(t.is_number for t in sympy.Add.make_args(pick.expression))
         occam = s.polish_rule in ("occam", "tolerance")
-        yv = yh if weak_h is None else weak_h @ yh
-
-        def pick_pred(c: Candidate) -> np.ndarray:
-            pred = c.evaluate(Xh)
-            return pred if weak_h is None else weak_h @ pred
-
+        yv = self._pick_rows(yh)
         best_seen = float(pick.holdout_loss)
         if limit is None or not np.isfinite(limit):
             limit = within_tolerance(best_seen, sel, scale)
         out: list[Candidate] = []
         current = pick
         for _ in range(s.polish_passes):
-            P = columns.primitives(X)
-            M = _lambdify(prims, terms)(P)
-            if weak is not None:
-                M = np.asarray(weak @ M)
+            M = self._term_columns(terms, columns, X)
             free = [i for i in pool if exprs[i] not in terms]
             ranked = term_substitutions(M, F[:, free], y) if free else []
             moves: list[list[sympy.Expr]] = []
@@ -387,18 +376,12 @@ class DiscoveryEngine:
                         moves.append([*terms[:j], *terms[j + 1:]])
             if not moves:
                 break
-            tried: list[Candidate] = []
-            for shapes in moves:
-                c = self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant)
-                if c is not None:
-                    tried.append(c)
-            attach_holdout(tried, Xh, yh, loss, weak_h)
-            ok = [c for c in tried if admissible(c, sel) and c.holdout_loss is not None
-                  and np.isfinite(c.holdout_loss)]
+            ok = self._refit_moves(moves, columns, X, y, Xh, yh, loss, constant)
             if s.polish_rule == "occam":
                 # paired t of each move's pick-row losses against the current model's (block means)
-                cur = pick_pred(current)
-                t = {id(c): paired_loss_t(yv, pick_pred(c), cur, loss, s.polish_blocks) for c in ok}
+                cur = self._pick_rows(current.evaluate(Xh))
+                t = {id(c): paired_loss_t(yv, self._pick_rows(c.evaluate(Xh)), cur, loss, s.polish_blocks)
+                     for c in ok}
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
                 grows = {id(c) for c in ok if s.polish_grow
                          and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)}
@@ -427,6 +410,39 @@ class DiscoveryEngine:
                 break
         self.stats["polish_swaps"] = len(out)
         return out
+
+    def _pick_rows(self, values: np.ndarray) -> np.ndarray:
+        """Values (N,) on the pick rows as the pick's loss sees them: integrated against the pick rows' test
+        functions in the weak form, else as they are."""
+        weak_h = (self.weak or (None, None))[1]
+        return values if weak_h is None else weak_h @ values
+
+    def _term_columns(self, terms: list[sympy.Expr], columns: _Columns, X: np.ndarray) -> np.ndarray:
+        """A model's term columns (N, k) on the fit rows X (weak rows when the weak form is on)."""
+        M = _lambdify(list(columns.space.primitives), terms)(columns.primitives(X))
+        weak = (self.weak or (None, None))[0]
+        return M if weak is None else np.asarray(weak @ M)
+
+    def _refit_moves(
+        self,
+        moves: list[list[sympy.Expr]],
+        columns: _Columns,
+        X: np.ndarray,
+        y: np.ndarray,
+        Xh: np.ndarray,
+        yh: np.ndarray,
+        loss: str,
+        constant: bool,
+    ) -> list[Candidate]:
+        """Each move (a model's term list) refit as the sparse candidates are, with its pick-row loss; the
+        ones that pass the pick's rules (identified, no anti-damping) with a finite pick loss."""
+        prims = list(columns.space.primitives)
+        lag = self._weak_lag()
+        fits = (self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant) for shapes in moves)
+        tried = [c for c in fits if c is not None]
+        attach_holdout(tried, Xh, yh, loss, (self.weak or (None, None))[1])
+        return [c for c in tried if admissible(c, self.selection) and c.holdout_loss is not None
+                and np.isfinite(c.holdout_loss)]
 
     def _no_vif_rule(self) -> SelectionSettings:
         """The pick's rules without the VIF rule (the t rule kept): what the merge repair starts from."""
@@ -468,33 +484,19 @@ class DiscoveryEngine:
         terms = _product_factors(start.expression)
         if len(terms) < 2 or start.holdout_loss is None or not np.isfinite(start.holdout_loss):
             return []
-        weak, weak_h = self.weak or (None, None)
-        lag = self._weak_lag()
-        prims = list(columns.space.primitives)
         exprs = columns.space.expressions
         constant = any(t.is_number for t in sympy.Add.make_args(start.expression))
-        yv = yh if weak_h is None else weak_h @ yh
-
-        def pick_pred(c: Candidate) -> np.ndarray:
-            pred = c.evaluate(Xh)
-            return pred if weak_h is None else weak_h @ pred
-
-        reference = pick_pred(start)
+        yv = self._pick_rows(yh)
+        reference = self._pick_rows(start.evaluate(Xh))
         limit = within_tolerance(float(start.holdout_loss), sel, scale)
-        M = _lambdify(prims, terms)(columns.primitives(X))
-        if weak is not None:
-            M = np.asarray(weak @ M)
+        M = self._term_columns(terms, columns, X)
         ranked = [(j, k, f) for j, k, f, _rss in term_merges(M, F, y) if exprs[f] not in terms]
-        tried: list[Candidate] = []
-        for j, k, f in ranked[: s.polish_tries]:
-            shapes = [t for m, t in enumerate(terms) if m not in (j, k)] + [exprs[f]]
-            c = self._linear_candidate(shapes, prims, columns, X, y, loss, lag, constant)
-            if c is not None:
-                tried.append(c)
-        attach_holdout(tried, Xh, yh, loss, weak_h)
-        passing = [c for c in tried if admissible(c, sel) and c.holdout_loss is not None
-                   and np.isfinite(c.holdout_loss) and c.holdout_loss <= limit
-                   and paired_loss_t(yv, pick_pred(c), reference, loss, s.polish_blocks) <= s.polish_z]
+        moves = [[t for m, t in enumerate(terms) if m not in (j, k)] + [exprs[f]]
+                 for j, k, f in ranked[: s.polish_tries]]
+        passing = [c for c in self._refit_moves(moves, columns, X, y, Xh, yh, loss, constant)
+                   if c.holdout_loss <= limit
+                   and paired_loss_t(yv, self._pick_rows(c.evaluate(Xh)), reference, loss,
+                                     s.polish_blocks) <= s.polish_z]
         return [min(passing, key=lambda c: (c.holdout_loss, c.complexity))] if passing else []
 
     def _linear_candidate(
