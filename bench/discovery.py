@@ -61,6 +61,7 @@ several times the CPU time). PASS only when every floor holds.
 
 Usage: python bench/discovery.py [--cases NAME,...] [--engines NAME,...] [--rows N] [--seed N]
                                  [--operon-generations N] [--train-duration S] [--out DIR] [--reuse-flights]
+                                 [--settings ENGINE_SETTINGS.yaml]
 """
 
 from __future__ import annotations
@@ -80,6 +81,7 @@ import sympy
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from bridge.errors import UserError  # noqa: E402
 from identification.body_frame import (  # noqa: E402
     BODY_TARGET_NAMES,
     PRIMITIVE_SYMBOLS,
@@ -92,7 +94,11 @@ from identification.body_frame import (  # noqa: E402
 from identification.collinearity import term_t_ratios  # noqa: E402
 from identification.dataset import Dataset, load_dataset  # noqa: E402
 from identification.effects_physics import Effects, body_expressions, flight_rows  # noqa: E402
-from identification.engine_settings import SelectionSettings  # noqa: E402
+from identification.engine_settings import (  # noqa: E402
+    EngineSettings,
+    SelectionSettings,
+    load_engine_settings,
+)
 from identification.height_law import body_values, height_law_error, height_terms  # noqa: E402
 from identification.identify import DEFAULT_BUDGET, identify  # noqa: E402
 from identification.kinematics import rotation_matrix_sym  # noqa: E402
@@ -350,14 +356,15 @@ def ols_three_terms(train: Dataset) -> Model:
 
 
 def fit(engine: str, train: Dataset, seed: int, gravity: float, budget: int,
-        operon_generations: int) -> Model:
+        operon_generations: int, settings: EngineSettings | None = None) -> Model:
     """One engine's model of the six targets from the training flight (budget: GP generations).
 
     The baselines run with BLAS on one thread, as ours and `sparse` run their fits (single_threaded_blas):
     the same numbers, but OpenBLAS's two threads spin on a loaded 2-core machine (STLSQ's least squares on
-    15,000 x 153 took 7x the CPU time)."""
+    15,000 x 153 took 7x the CPU time). settings: ours' engine settings (--settings; None: the defaults)."""
     if engine in ("discovery", "sparse"):
-        return identify(train, engine=engine, budget=budget, seed=seed, progress=False, gravity=gravity)
+        return identify(train, engine=engine, budget=budget, seed=seed, progress=False, gravity=gravity,
+                        settings=settings)
     if engine not in BASELINES:
         raise SystemExit(f"unknown engine {engine!r} (known: {', '.join(ENGINES)})")
     with single_threaded_blas():
@@ -628,6 +635,8 @@ def main() -> int:
     ap.add_argument("--engines", default=",".join(ENGINES), help=f"comma-separated, of {', '.join(ENGINES)}")
     ap.add_argument("--rows", type=int, default=4000, help="synthetic rows per flight (250 Hz: 16 s)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--settings", default=None,
+                    help="engine settings YAML for ours and sparse (as identify's --settings; default: none)")
     ap.add_argument("--operon-generations", type=int, default=OPERON_GENERATIONS,
                     help="the pyoperon-alone baseline's generations per target")
     ap.add_argument("--budget", type=int, default=DEFAULT_BUDGET,
@@ -647,7 +656,13 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows: list[Row] = []
     floors: list[tuple[str, bool]] = []
+    try:
+        ours = load_engine_settings(args.settings)
+    except UserError as exc:
+        raise SystemExit(f"error: {exc}") from None
     settings = baseline_settings(engines, args.operon_generations, args.seed)
+    if args.settings:
+        settings.insert(0, f"ours and sparse with the engine settings of {args.settings}")
     for line in settings:
         print(f"baseline {line}")
     for case in cases:
@@ -677,7 +692,7 @@ def main() -> int:
         slug = "".join(ch if ch.isalnum() else "-" for ch in case.name)
         for engine in engines:
             start, cpu_start = time.perf_counter(), time.process_time()
-            model = fit(engine, train, args.seed, gravity, args.budget, args.operon_generations)
+            model = fit(engine, train, args.seed, gravity, args.budget, args.operon_generations, ours)
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
             save_model(model, models_dir / f"{slug}-{engine}.yaml")  # to trace a row's terms afterwards
             row = score(case.name, engine, model, raw_val if weak_case else val, reference, body_reference,
@@ -688,7 +703,7 @@ def main() -> int:
                 report_row(row)
                 start, cpu_start = time.perf_counter(), time.process_time()
                 model = identify(raw_train, budget=args.budget, seed=args.seed, progress=False,
-                                 gravity=gravity, weak=WeakSettings())
+                                 gravity=gravity, weak=WeakSettings(), settings=ours)
                 wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
                 save_model(model, models_dir / f"{slug}-discovery-weak.yaml")
                 row = score(case.name, "discovery-weak", model, raw_val, reference, body_reference, wall, cpu,

@@ -29,6 +29,7 @@ Budgets are counts, not seconds (the time budget is ignored), so the same seed g
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import time
 import warnings
@@ -49,6 +50,7 @@ from identification.feature_space import (
     grow_products,
     grow_unary,
 )
+from identification.hub_law import HUB_PRIMITIVES, fit_hub_law
 from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
@@ -91,6 +93,11 @@ def check_settings(settings: DiscoverySettings) -> None:
                         f"{settings.polish_passes} and {settings.polish_tries}", hint="polish_passes 0: off")
     if not settings.primitives:
         raise UserError("discovery settings: no primitives", hint=f"choose from {', '.join(PRIMITIVES)}")
+    if settings.hub_law_fits < 0 or settings.hub_law_powers < 1 or settings.hub_law_evaluations < 1:
+        raise UserError("discovery settings: keys 'hub_law_fits' >= 0, 'hub_law_powers' >= 1 and "
+                        f"'hub_law_evaluations' >= 1, got {settings.hub_law_fits}, "
+                        f"{settings.hub_law_powers} and {settings.hub_law_evaluations}",
+                        hint="hub_law_fits 0: off; powers 4; evaluations 400")
     if not 0.0 <= settings.abs_sign_share <= 1.0:
         raise UserError(f"discovery settings: key 'abs_sign_share' must be in [0, 1], got "
                         f"{settings.abs_sign_share}", hint="0.05: |x| only where x reaches both signs")
@@ -243,10 +250,30 @@ class DiscoveryEngine:
         swaps: list[int] = []  # features that would replace a term of the last round's model (replacement)
         best: Candidate | None = None
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
-        for rnd in range(max(s.rounds, 1)):
+        off = np.zeros(len(space), bool)  # features out of the screening (the height series once a law is in)
+        # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
+        # most hub_law_fits times; each law round is followed by rounds that screen its residual
+        laws, fit_law = 0, False
+        rnd, limit = 0, max(s.rounds, 1)
+        while rnd < limit:
+            law_now = False
+            if fit_law:
+                fit_law = False
+                laws += 1
+                added = self._add_hub_law(best, space, columns, F, y, X, (Xh, yh, loss))
+                if added is not None:
+                    space, law = added
+                    columns = _Columns(space)
+                    F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
+                    Z = np.hstack([Z, _standardized(F[:, [law]])])
+                    off = space.height_features() & (not s.hub_law_series)
+                    pool = [i for i in pool if not off[i]] + basis.add_first(F, [law])
+                    swaps = [i for i in swaps if not off[i]]
+                    law_now = law in pool
             model_terms = self._features.get(id(best), np.zeros(0, int))
             model_cols = F[:, model_terms]
             scores = _projected_scores(Z, residual if weights is None else weights * residual, model_cols)
+            scores[off] = -np.inf
             new = basis.add_first(F, swaps)  # replacement screening first
             # a proposed swap that is a combination of pool features takes the place of one of them
             swapped = _swap_in_combinations(F, pool, [i for i in swaps if i not in new],
@@ -256,14 +283,17 @@ class DiscoveryEngine:
             order = np.argsort(-scores, kind="stable")
             limit = s.screen + len(swaps) - len(new)
             new += basis.add_first(F, order[np.isfinite(scores[order])], limit=limit)
-            if not new and not swapped:
-                break
+            if not new and not swapped and not law_now:
+                if not self._law_due(best, space, laws):
+                    break
+                fit_law, limit, rnd = True, max(limit, rnd + 2), rnd + 1
+                continue
             pool += new
             ids = np.asarray(pool)
             round_cands = self._sparsify(
                 [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
-                list(pool), lambda X_, js, ids=ids: columns(X_, ids[js]), y, loss, seen, space_indices=ids,
-                weights=weights)
+                list(pool), lambda X_, js, ids=ids, cols=columns: cols(X_, ids[js]), y, loss, seen,
+                space_indices=ids, weights=weights)
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
@@ -271,13 +301,22 @@ class DiscoveryEngine:
             if loss == "absolute":  # the few rows with large target errors do not choose the terms
                 weights = huber_weights(residual)
             swaps = replacements(F, Z, y, [int(i) for i in self._features.get(id(best), [])], pool, weights)
+            swaps = [i for i in swaps if not off[i]]
             if progress:
                 progress(0.7 * (rnd + 1) / max(s.rounds, 1),
                          f"round {rnd + 1}: pool {len(pool)}, pick loss {best.holdout_loss:.3g}")
             stale = stale + 1 if previous is not None and not _better(best, previous, scale) else 0
-            if stale >= max(s.patience, 1) or _exact(best, scale):
+            stop = not law_now and (stale >= max(s.patience, 1) or _exact(best, scale))
+            if law_now:
+                stale = 0
+            # the first round that found nothing better is where the series is as good as it gets
+            settled = not law_now and (stale >= 1 or _exact(best, scale) or rnd + 1 >= limit)
+            if settled and self._law_due(best, space, laws):
+                fit_law, stale, limit = True, 0, max(limit, rnd + 2 + max(s.patience - 1, 0))
+            elif stop:
                 break
-        self.stats["rounds"] = rnd + 1
+            rnd += 1
+        self.stats["rounds"] = min(rnd + 1, limit)
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
         if best is not None and budget > 0:
@@ -299,6 +338,93 @@ class DiscoveryEngine:
         if progress:
             progress(1.0, f"{len(candidates)} candidates")
         return candidates
+
+    def _law_due(self, best: Candidate | None, space: FeatureSpace, laws: int) -> bool:
+        """Whether to fit a hub law now: fewer than hub_law_fits fitted, the flight reaches near the ground
+        (the space holds the ground-plane gradients) and the pick of the rounds so far holds height
+        features."""
+        s = self.settings
+        if best is None or laws >= s.hub_law_fits or not any(r.op == "tilt" for r in space.recipes):
+            return False
+        terms = self._features.get(id(best), ())
+        mask = space.height_features()
+        return any(mask[int(i)] for i in terms)
+
+    def _add_hub_law(
+        self,
+        best: Candidate,
+        space: FeatureSpace,
+        columns: _Columns,
+        F: np.ndarray,
+        y: np.ndarray,
+        X: np.ndarray,
+        pick_rows: tuple[np.ndarray, np.ndarray, str],
+    ) -> tuple[FeatureSpace, int] | None:
+        """The pick's height terms refit as one hub law (identification.hub_law) beside its other terms, the
+        law added to a copy of the space: (that space, the law's index), or None (no finite fit, the law
+        already in the space, or with hub_law_evidence a law no better than the pick's series on the pick
+        rows). F, y: fit rows (weak rows in the weak form); X: the fit rows' variables; pick_rows: (Xh, yh,
+        loss)."""
+        s = self.settings
+        mask = space.height_features()
+        rest_idx = [int(i) for i in self._features.get(id(best), ()) if not mask[int(i)]]
+        weak = (self.weak or (None, None))[0]
+        rest = np.hstack([self._on_fit_rows(np.ones((len(X), 1))), F[:, rest_idx]])
+        P = columns.primitives(X)
+        inputs = P[:, [space.primitives.index(n) for n in HUB_PRIMITIVES]]
+        start = time.perf_counter()
+        # a hub is where it is for every target: the flight's last fitted offsets are the starting point
+        key = hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest()
+        fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak,
+                             s.hub_law_evaluations, _LAST_HUB.get(key))
+        self.timings["hub_law"] = time.perf_counter() - start
+        if fitted is None:
+            return None
+        grown = space.copy()
+        u2 = next((grown.units[i] for i, r in enumerate(grown.recipes) if r.op == "pow2"
+                   and grown.primitives[r.args[0]] == "u1"), (0, -2))
+        index = grown.add_law(fitted, u2)  # unit of u_i^2: the law's coefficients carry the rest
+        if index is None:
+            return None
+        better = self._law_is_better(best, grown, index, rest_idx, F, y, X, pick_rows)
+        if s.hub_law_evidence and not better:
+            self.stats["hub_law"] = "fitted, not kept: not better than the series on the pick rows"
+            return None
+        _LAST_HUB.clear()
+        _LAST_HUB[key] = np.asarray(fitted.offsets)
+        self.stats["hub_offsets_m"] = [list(r) for r in fitted.offsets]
+        return grown, index
+
+    def _law_is_better(
+        self,
+        best: Candidate,
+        space: FeatureSpace,
+        law: int,
+        rest_idx: list[int],
+        F: np.ndarray,
+        y: np.ndarray,
+        X: np.ndarray,
+        pick_rows: tuple[np.ndarray, np.ndarray, str],
+    ) -> bool:
+        """Whether the pick with its height terms replaced by the hub law (least squares on the fit rows) is
+        better than the pick on the pick rows by more than polish_z standard errors (paired_loss_t): the law
+        replaces a series that already holds the height dependence only on evidence (a flight whose tilts
+        keep the hubs' offsets small against the height has a series as good, and the law's sixteen
+        coefficients then fit the targets' errors)."""
+        Xh, yh, loss = pick_rows
+        law_cols = _Columns(space)
+        idx = np.asarray([*rest_idx, law], int)
+        A = np.hstack([self._on_fit_rows(np.ones((len(X), 1))), F[:, rest_idx],
+                       self._on_fit_rows(law_cols(X, np.asarray([law])))])
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        if not np.all(np.isfinite(coef)):
+            return False
+        pred = law_cols(Xh, idx) @ coef[1:] + coef[0]
+        yv = self._pick_rows(yh)
+        t = paired_loss_t(yv, self._pick_rows(pred), self._pick_rows(best.evaluate(Xh)), loss,
+                          self.settings.polish_blocks)
+        self.stats["hub_law_t"] = float(t)
+        return bool(t < -self.settings.polish_z)
 
     def _polish(
         self,
@@ -419,7 +545,11 @@ class DiscoveryEngine:
 
     def _term_columns(self, terms: list[sympy.Expr], columns: _Columns, X: np.ndarray) -> np.ndarray:
         """A model's term columns (N, k) on the fit rows X (weak rows when the weak form is on)."""
-        M = _lambdify(list(columns.space.primitives), terms)(columns.primitives(X))
+        return self._on_fit_rows(_lambdify(list(columns.space.primitives), terms)(columns.primitives(X)))
+
+    def _on_fit_rows(self, M: np.ndarray) -> np.ndarray:
+        """Point columns (N, k) as the fit rows see them: integrated against the fit rows' test functions in
+        the weak form, else as they are."""
         weak = (self.weak or (None, None))[0]
         return M if weak is None else np.asarray(weak @ M)
 
@@ -648,7 +778,9 @@ class DiscoveryEngine:
         prims = list(columns.space.primitives)
         # the ground plane's normal (gx, gy) only inside the features that hold it (a height law's gradient)
         own = [k for k, n in enumerate(prims) if not PRIMITIVES[n].ground_normal]
-        seeds = _product_factors(best.expression)
+        # a hub law is no seed: its expression is large and GP products of it would be expanded term by term
+        laws = {law.expression() for law in columns.space.laws}
+        seeds = [f for f in _product_factors(best.expression) if f not in laws]
         names = [prims[k] for k in own] + [f"s{k}" for k in range(len(seeds))]
         mapping: dict[str, sympy.Expr] = {prims[k]: PRIMITIVE_SYMBOLS[prims[k]] for k in own}
         mapping.update({f"s{k}": e for k, e in enumerate(seeds)})
@@ -757,6 +889,7 @@ class DiscoveryEngine:
 
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
+_LAST_HUB: dict[str, np.ndarray] = {}  # the last training data's fitted hub offsets (4, 3) m (one entry)
 # the residual's model between rounds: identify's held-out pick without its identification rules (t ratio,
 # VIF). A round's models are incomplete: their residual is the physics still to find, smooth, so its
 # effective sample size is tens of rows and every t ratio is small; which few pass is chance (with t ratios
@@ -1150,11 +1283,19 @@ def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:
 
 def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray], np.ndarray]:
     """P (N, n_primitives) -> (N, len(exprs)) for expressions in the primitive names."""
-    fn = sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in prims], exprs, modules="numpy")
+    fns = [_expression_fn(tuple(prims), e) for e in exprs]
 
     def matrix(P: np.ndarray) -> np.ndarray:
+        args = [P[:, k] for k in range(P.shape[1])]
         with np.errstate(all="ignore"):
-            cols = fn(*[P[:, k] for k in range(P.shape[1])])
+            cols = [fn(*args) for fn in fns]
         return np.column_stack([np.broadcast_to(np.asarray(c, float), (P.shape[0],)) for c in cols])
 
     return matrix
+
+
+@functools.lru_cache(maxsize=8192)
+def _expression_fn(prims: tuple[str, ...], expr: sympy.Expr) -> Callable[..., np.ndarray]:
+    """One expression compiled once (the polish and the merge repair refit the same terms in many term
+    lists; a hub law is a large expression)."""
+    return sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in prims], expr, modules="numpy")

@@ -130,6 +130,21 @@ class DiscoverySettings:
     # combinations of one family depends on how they are written (closed-loop aero's dwz: wz (u1+u2+u3+u4)
     # + u2 wz + u4 wz + wz, VIF 199, is wz (u1+u2+u3+u4) + wz (u1-u2+u3-u4) + wz, VIF 36, the true structure)
     polish_merge: bool = True
+    # hub law (identification.hub_law): for a flight near the ground, where the rounds would stop with height
+    # terms in the pick, they are refit as one law per target at each rotor's hub height h - r_i.g, the hubs'
+    # offsets r_i learned (variable projection, at most hub_law_evaluations function evaluations), powers of
+    # 1/H_i up to hub_law_powers; the law joins the pool as one feature in place of the height features,
+    # and rounds go on on its residual; at most hub_law_fits times (0: off, the default). Off by default,
+    # measured (session 10, README): on closed-loop fang-chen-aero (tilts to 0.3 rad at 0.2-3 m) it takes wy's
+    # height law 6.09 -> 0.89 % and the structure 135/8/0 -> 140/3/2, but on sitl ground effect (small tilts,
+    # where the series already holds the law) 36/0/0 becomes 36/0/2 (a constant in dwx and dwy)
+    hub_law_fits: int = 0
+    hub_law_powers: int = 4
+    hub_law_series: bool = False  # the series in 1/h stays in the pool beside the law
+    # the law is kept only when the pick with it beats the pick with its series on the pick rows by more than
+    # polish_z standard errors (paired, polish_blocks blocks)
+    hub_law_evidence: bool = True
+    hub_law_evaluations: int = 400
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ import numpy as np
 import sympy
 
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, Unit
+from identification.hub_law import HUB_PRIMITIVES, HubLaw
 
 OPERATORS: tuple[str, ...] = ("mul", "pow", "abs", "inv", "tilt", "norm", "sincos", "add")
 
@@ -68,9 +69,11 @@ def power_unit(unit: Unit, p: int) -> Unit:
 class Recipe:
     """How a feature's column is computed: op over primitive columns (unary) or parent features (mul)."""
 
-    op: str  # id, pow2, abs, inv, tilt, sin, cos, norm, sum1, sum2, mul
-    args: tuple[int, ...]  # primitive indices (unary, norm, sums; tilt: (normal, height)) or feature indices
-    signs: tuple[int, ...] = ()  # the signed sums' signs, one per argument; inv, tilt: (the power of 1/x,)
+    op: str  # id, pow2, abs, inv, tilt, sin, cos, norm, sum1, sum2, mul, hub
+    # primitive indices (unary, norm, sums; tilt: (normal, height); hub: HUB_PRIMITIVES') or feature indices
+    args: tuple[int, ...]
+    # the signed sums' signs, one per argument; inv, tilt: (the power of 1/x,); hub: (its index in `laws`,)
+    signs: tuple[int, ...] = ()
 
 
 @dataclass
@@ -83,6 +86,7 @@ class FeatureSpace:
     rungs: list[int] = field(default_factory=list)
     recipes: list[Recipe] = field(default_factory=list)
     pruned: dict[str, int] = field(default_factory=dict)
+    laws: list[HubLaw] = field(default_factory=list)  # hub laws (identification.hub_law): "hub" recipes
     _keys: dict[str, int] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -98,6 +102,33 @@ class FeatureSpace:
         self.rungs.append(rung)
         self.recipes.append(recipe)
         return len(self.expressions) - 1
+
+    def add_law(self, law: HubLaw, unit: Unit) -> int | None:
+        """A fitted hub law as one feature (rung 0: never grown into products); its index, or None when
+        the space already holds the same expression or a primitive it reads is not in the space."""
+        if any(n not in self.primitives for n in HUB_PRIMITIVES):
+            return None
+        self.laws.append(law)
+        args = tuple(self.primitives.index(n) for n in HUB_PRIMITIVES)
+        return self._add(law.expression(), unit, 0, Recipe("hub", args, (len(self.laws) - 1,)))
+
+    def copy(self) -> FeatureSpace:
+        """A copy whose lists can grow without changing this one."""
+        return FeatureSpace(self.primitives, list(self.expressions), list(self.units), list(self.rungs),
+                            list(self.recipes), dict(self.pruned), list(self.laws), dict(self._keys))
+
+    def height_features(self) -> np.ndarray:
+        """Per feature (bool): whether it reads the height (a positive primitive: its powers, inverse powers,
+        ground-plane gradients, a hub law, or a product holding one of them)."""
+        out = np.zeros(len(self), bool)
+        for i, r in enumerate(self.recipes):
+            if r.op in ("tilt", "hub"):
+                out[i] = True
+            elif r.op == "mul":
+                out[i] = out[r.args[0]] or out[r.args[1]]
+            elif r.op in ("id", "pow2", "inv", "abs"):
+                out[i] = PRIMITIVES[self.primitives[r.args[0]]].positive
+        return out
 
     def _prune(self, why: str) -> None:
         self.pruned[why] = self.pruned.get(why, 0) + 1
@@ -115,6 +146,8 @@ class FeatureSpace:
             with np.errstate(all="ignore"):
                 if r.op == "mul":
                     v = col(r.args[0]) * col(r.args[1])
+                elif r.op == "hub":
+                    v = self.laws[r.signs[0]].values(P[:, list(r.args)])
                 else:
                     x = P[:, r.args[0]]
                     if r.op == "id":

@@ -1,0 +1,130 @@
+"""A height law at the rotor hubs, with the hubs' positions learned: one feature per target, not a series.
+
+A ground-effect law acts on each rotor at its own hub height. A body point r (FRD, m from the CG) is at height
+h_r = h - r . g above the ground, g = (gx, gy, gz) the gravity direction FRD (gz = sqrt(1 - gx^2 - gy^2)
+upright), so a tilted vehicle's lower rotors are nearer the ground. The feature space holds this as a series
+in 1/h and first-order ground-plane gradients g_j/h^(k+1) (identification.feature_space "tilt"); near the
+ground, at tilts of tenths of a radian, the hub offset r.g is a large part of h and the first order leaves
+most of the law's moment unexplained (closed-loop fang-chen-aero: the best fit of the exact law by that
+family leaves 9e-4 rad/s^2 on wy', more than the terms still to find).
+
+Here the law is refit as
+
+    L = sum_i u_i^2 sum_k b_ik / H_i^k,   H_i = h - r_i . g,   k = 1..K
+
+with the hub offsets r_i (m, FRD, one per rotor, unknown) fitted by variable projection: for given r the
+b_ik and the model's other terms are linear least squares, and r minimises what is left (scipy
+least_squares from r = 0, every hub at the CG). Nothing of the law's form is given: a per-rotor series in
+1/H_i as the space's series in 1/h, its coefficients free. On closed-loop fang-chen-aero the fitted offsets
+are the rotor hubs (0.16, +-0.16, -0.03 m; true 0.164, +-0.159, -0.04 from the CG) and the law's error falls
+6x. The engine adds L as one feature with its b_ik fixed (one column, one coefficient: a series of
+collinear columns would fail the pick's VIF rule), in place of the series.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import sympy
+from scipy.optimize import least_squares
+
+from identification.body_frame import PRIMITIVE_SYMBOLS
+
+# the primitives a hub law reads, in this order (the columns of `hub_inputs`)
+HUB_PRIMITIVES: tuple[str, ...] = ("h", "gx", "gy", "u1", "u2", "u3", "u4")
+
+
+@dataclass(frozen=True)
+class HubLaw:
+    """A fitted hub law: offsets (4, 3) m FRD per rotor, coefficients (4, K) per rotor and power 1..K."""
+
+    offsets: tuple[tuple[float, float, float], ...]
+    coefficients: tuple[tuple[float, ...], ...]
+
+    @property
+    def powers(self) -> int:
+        """K, the highest power of 1/H_i."""
+        return len(self.coefficients[0])
+
+    def values(self, inputs: np.ndarray) -> np.ndarray:
+        """The law's values (N,) from hub_inputs columns (N, 7: h m, gx, gy, u1..u4 rad/s)."""
+        return hub_columns(inputs, np.asarray(self.offsets), self.powers) @ np.ravel(self.coefficients)
+
+    def expression(self) -> sympy.Expr:
+        """The law in the primitive names (an Add of b_ik u_i^2 / H_i^k)."""
+        s = PRIMITIVE_SYMBOLS
+        gz = sympy.sqrt(1 - s["gx"] ** 2 - s["gy"] ** 2)
+        terms = []
+        for i, (r, b) in enumerate(zip(self.offsets, self.coefficients, strict=True)):
+            hub = s["h"] - sympy.Float(r[0]) * s["gx"] - sympy.Float(r[1]) * s["gy"] - sympy.Float(r[2]) * gz
+            u2 = s[f"u{i + 1}"] ** 2
+            terms += [sympy.Float(bk) * u2 / hub ** (k + 1) for k, bk in enumerate(b) if bk != 0.0]
+        return sympy.Add(*terms)
+
+
+def hub_heights(inputs: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Each hub's height (N, 4) m: h - r_i . g with gz = sqrt(1 - gx^2 - gy^2), offsets (4, 3) m FRD."""
+    h, gx, gy = inputs[:, 0], inputs[:, 1], inputs[:, 2]
+    gz = np.sqrt(np.clip(1.0 - gx * gx - gy * gy, 0.0, 1.0))
+    G = np.column_stack([gx, gy, gz])
+    return h[:, None] - G @ np.asarray(offsets, float).T
+
+
+def hub_columns(inputs: np.ndarray, offsets: np.ndarray, powers: int) -> np.ndarray:
+    """u_i^2 / H_i^k (N, 4*powers), rotor-major (rotor i's k = 1..powers together); hub heights at or below
+    zero (a rotor below the ground: impossible) give inf, so no fit keeps such offsets."""
+    H = hub_heights(inputs, offsets)
+    with np.errstate(all="ignore"):
+        H = np.where(H > 0.0, H, 0.0)
+        out = [inputs[:, 3 + i] ** 2 / H[:, i] ** k for i in range(4) for k in range(1, powers + 1)]
+    return np.column_stack(out)
+
+
+def fit_hub_law(
+    inputs: np.ndarray,
+    y: np.ndarray,
+    rest: np.ndarray,
+    powers: int,
+    weak: np.ndarray | None = None,
+    max_evaluations: int = 400,
+    start: np.ndarray | None = None,
+) -> HubLaw | None:
+    """The hub law that, beside `rest` (N', m: the model's other terms and a constant), best fits y (N',) in
+    least squares. inputs: hub_inputs columns (N, 7) of the fit rows; weak: the weak form's test functions
+    (N', N) applied to the law's columns (None: point rows, N' = N). Offsets bounded by the flight's median
+    height per component (a hub farther from the CG than the vehicle flies high could not be told from the
+    height itself). Budget in function evaluations; start: the offsets (4, 3) m to start from (None: every
+    hub at the CG). None when no finite fit."""
+    inputs = np.asarray(inputs, float)
+    y = np.asarray(y, float)
+    Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
+    y_perp = y - Q @ (Q.T @ y)
+    scale = float(np.sqrt(np.mean(y_perp**2))) or 1.0
+
+    def law_cols(r: np.ndarray) -> np.ndarray:
+        L = hub_columns(inputs, r.reshape(4, 3), powers)
+        return L if weak is None else np.asarray(weak @ L)
+
+    def solve(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        L = law_cols(r)
+        if not np.all(np.isfinite(L)):
+            return np.full(len(y), 1e3 * scale), np.zeros(L.shape[1])
+        L_perp = L - Q @ (Q.T @ L)
+        norms = np.linalg.norm(L_perp, axis=0)
+        norms = np.where(norms > 0.0, norms, 1.0)
+        b, *_ = np.linalg.lstsq(L_perp / norms, y_perp, rcond=None)
+        b = b / norms
+        return y_perp - L_perp @ b, b
+
+    bound = float(np.median(inputs[:, 0]))
+    if not np.isfinite(bound) or bound <= 0.0:
+        return None
+    x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
+    sol = least_squares(lambda r: solve(r)[0] / scale, x0, bounds=(-bound, bound),
+                        x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations)
+    residual, b = solve(sol.x)
+    if not np.all(np.isfinite(b)) or not np.all(np.isfinite(residual)):
+        return None
+    offsets = tuple(tuple(float(v) for v in row) for row in sol.x.reshape(4, 3))
+    return HubLaw(offsets, tuple(tuple(float(v) for v in row) for row in b.reshape(4, powers)))
