@@ -661,10 +661,11 @@ def main() -> int:
     except UserError as exc:
         raise SystemExit(f"error: {exc}") from None
     settings = baseline_settings(engines, args.operon_generations, args.seed)
-    if args.settings:
-        settings.insert(0, f"ours and sparse with the engine settings of {args.settings}")
     for line in settings:
         print(f"baseline {line}")
+    if args.settings:
+        settings.insert(0, f"ours and sparse with the engine settings of {args.settings}")
+        print(settings[0])
     for case in cases:
         if case.sitl_vehicle is not None and vehicle_file(case.sitl_vehicle) is None:
             print(f"== {case.name}: vehicle {case.sitl_vehicle!r} not in this checkout: not run")
