@@ -254,8 +254,8 @@ class DiscoveryEngine:
         # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
-        rnd, limit = 0, max(s.rounds, 1)
-        while rnd < limit:
+        rnd, last = 0, max(s.rounds, 1)  # rounds run while rnd < last (a hub law adds rounds)
+        while rnd < last:
             law_now = False
             if fit_law:
                 fit_law = False
@@ -286,7 +286,7 @@ class DiscoveryEngine:
             if not new and not swapped and not law_now:
                 if not self._law_due(best, space, laws):
                     break
-                fit_law, limit, rnd = True, max(limit, rnd + 2), rnd + 1
+                fit_law, last, rnd = True, max(last, rnd + 2), rnd + 1
                 continue
             pool += new
             ids = np.asarray(pool)
@@ -310,13 +310,13 @@ class DiscoveryEngine:
             if law_now:
                 stale = 0
             # the first round that found nothing better is where the series is as good as it gets
-            settled = not law_now and (stale >= 1 or _exact(best, scale) or rnd + 1 >= limit)
+            settled = not law_now and (stale >= 1 or _exact(best, scale) or rnd + 1 >= last)
             if settled and self._law_due(best, space, laws):
-                fit_law, stale, limit = True, 0, max(limit, rnd + 2 + max(s.patience - 1, 0))
+                fit_law, stale, last = True, 0, max(last, rnd + 2 + max(s.patience - 1, 0))
             elif stop:
                 break
             rnd += 1
-        self.stats["rounds"] = min(rnd + 1, limit)
+        self.stats["rounds"] = min(rnd + 1, last)
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
         if best is not None and budget > 0:

@@ -165,3 +165,16 @@ def test_patience_rounds_without_a_better_pick_end_the_search_on_noisy_data():
         rounds.append(engine.stats["rounds"])
     assert rounds[0] <= 3 and rounds[1] > rounds[0]
     assert picks[0] == picks[1]
+
+
+@pytest.mark.parametrize("rounds", [1, 2])
+def test_the_rounds_never_exceed_their_budget(rounds):
+    # noisy targets and a patience longer than the budget: only the budget stops the rounds (a count, so the
+    # same on any machine); the hub law's extra rounds are not taken on a flight far from the ground
+    xi, u, ned = flight_rows(1500, 3, "fang-chen-buaa", Effects(rotor_drag=0.02))
+    y = body_targets(xi, ned, 9.8)[:, BODY_TARGET_NAMES.index("dwx")]
+    y = y + np.random.default_rng(4).normal(0.0, 0.05 * np.std(y), len(y))
+    Xt, yt, Xh, yh = split_holdout(np.hstack([xi, u]), y)
+    engine = DiscoveryEngine(DiscoverySettings(rounds=rounds, patience=10, screen=5))
+    engine.fit(Xt, yt, "dwx", 0, 0, "absolute", None, (Xh, yh))
+    assert engine.stats["rounds"] == rounds, engine.stats
