@@ -49,6 +49,7 @@ from identification.feature_space import (
     FeatureSpace,
     grow_products,
     grow_unary,
+    power_unit,
 )
 from identification.hub_law import HUB_PRIMITIVES, fit_hub_law
 from identification.library import Feature
@@ -262,11 +263,10 @@ class DiscoveryEngine:
                 laws += 1
                 added = self._add_hub_law(best, space, columns, F, y, X, (Xh, yh, loss))
                 if added is not None:
-                    space, law = added
-                    columns = _Columns(space)
+                    space, law, columns = added
                     F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
                     Z = np.hstack([Z, _standardized(F[:, [law]])])
-                    off = space.height_features() & (not s.hub_law_series)
+                    off = space.height_features()
                     pool = [i for i in pool if not off[i]] + basis.add_first(F, [law])
                     swaps = [i for i in swaps if not off[i]]
                     law_now = law in pool
@@ -359,12 +359,12 @@ class DiscoveryEngine:
         y: np.ndarray,
         X: np.ndarray,
         pick_rows: tuple[np.ndarray, np.ndarray, str],
-    ) -> tuple[FeatureSpace, int] | None:
+    ) -> tuple[FeatureSpace, int, _Columns] | None:
         """The pick's height terms refit as one hub law (identification.hub_law) beside its other terms, the
-        law added to a copy of the space: (that space, the law's index), or None (no finite fit, the law
-        already in the space, or with hub_law_evidence a law no better than the pick's series on the pick
-        rows). F, y: fit rows (weak rows in the weak form); X: the fit rows' variables; pick_rows: (Xh, yh,
-        loss)."""
+        law added to a copy of the space: (that space, the law's index, its columns), or None (no finite fit,
+        the law already in the space, or with hub_law_evidence a law no better than the pick's series on the
+        pick rows). F, y: fit rows (weak rows in the weak form); X: the fit rows' variables; pick_rows:
+        (Xh, yh, loss)."""
         s = self.settings
         mask = space.height_features()
         rest_idx = [int(i) for i in self._features.get(id(best), ()) if not mask[int(i)]]
@@ -381,24 +381,24 @@ class DiscoveryEngine:
         if fitted is None:
             return None
         grown = space.copy()
-        u2 = next((grown.units[i] for i, r in enumerate(grown.recipes) if r.op == "pow2"
-                   and grown.primitives[r.args[0]] == "u1"), (0, -2))
-        index = grown.add_law(fitted, u2)  # unit of u_i^2: the law's coefficients carry the rest
+        # unit of u_i^2: the law's coefficients carry the rest
+        index = grown.add_law(fitted, power_unit(PRIMITIVES["u1"].unit, 2))
         if index is None:
             return None
-        better = self._law_is_better(best, grown, index, rest_idx, F, y, X, pick_rows)
+        grown_columns = _Columns(grown)
+        better = self._law_is_better(best, grown_columns, index, rest_idx, F, y, X, pick_rows)
         if s.hub_law_evidence and not better:
             self.stats["hub_law"] = "fitted, not kept: not better than the series on the pick rows"
             return None
         _LAST_HUB.clear()
         _LAST_HUB[key] = np.asarray(fitted.offsets)
         self.stats["hub_offsets_m"] = [list(r) for r in fitted.offsets]
-        return grown, index
+        return grown, index, grown_columns
 
     def _law_is_better(
         self,
         best: Candidate,
-        space: FeatureSpace,
+        law_cols: _Columns,
         law: int,
         rest_idx: list[int],
         F: np.ndarray,
@@ -412,7 +412,6 @@ class DiscoveryEngine:
         keep the hubs' offsets small against the height has a series as good, and the law's sixteen
         coefficients then fit the targets' errors)."""
         Xh, yh, loss = pick_rows
-        law_cols = _Columns(space)
         idx = np.asarray([*rest_idx, law], int)
         A = np.hstack([self._on_fit_rows(np.ones((len(X), 1))), F[:, rest_idx],
                        self._on_fit_rows(law_cols(X, np.asarray([law])))])

@@ -140,7 +140,6 @@ class DiscoverySettings:
     # where the series already holds the law) 36/0/0 becomes 36/0/2 (a constant in dwx and dwy)
     hub_law_fits: int = 0
     hub_law_powers: int = 4
-    hub_law_series: bool = False  # the series in 1/h stays in the pool beside the law
     # the law is kept only when the pick with it beats the pick with its series on the pick rows by more than
     # polish_z standard errors (paired, polish_blocks blocks)
     hub_law_evidence: bool = True
