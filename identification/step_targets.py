@@ -145,14 +145,16 @@ def step_interval_rows(
     speeds: np.ndarray,
     ratio: float,
     gravity: float | None = None,
+    notes: list[str] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rows of the N-1 intervals between samples: (t_mid s, xi (N-1,12), u (N-1,4), targets (N-1,6)).
 
     Inputs per sample: t (s), position NED (m), velocity NED (m/s), quaternion (w, x, y, z) body FRD -> NED,
     body rates FRD (rad/s), rotor speeds (rad/s); ratio the motors' lag ratio per interval (motor_lag_ratio).
     Targets: ax ay az (NED m/s^2) and dwx dwy dwz (FRD rad/s^2), the exact means over each interval; with
-    gravity (m/s^2) ax ay az are taken to the midpoint attitude (_midpoint_acceleration). The caller keeps
-    only intervals of one step whose two ends are usable.
+    gravity (m/s^2) ax ay az are taken to the midpoint attitude (_midpoint_acceleration) and the targets
+    from the step means to the rows' state where that is known (_at_row_state; what moved is appended to
+    notes). The caller keeps only intervals of one step whose two ends are usable.
     """
     t = np.asarray(t, dtype=float)
     dt = np.diff(t)[:, None]
@@ -183,9 +185,150 @@ def step_interval_rows(
         a_mid = _midpoint_acceleration(a_mean, r, xi[:, 9:12], dt[:, 0], gravity, dw_mean, moment)
         xi[:, 3:6] = _mean_body_velocity(xi[:, 3:6], a_mean, a_mid, r, xi[:, 9:12], dw_mean,
                                          moment, dt[:, 0], gravity)
-    targets = np.concatenate((a_mid, dw_mean), axis=1)
     u_mid = np.sqrt(np.maximum(mean_sq, 0.0))
+    if gravity is not None:
+        g_e3 = np.array([0.0, 0.0, gravity])
+        f_b = np.einsum("nji,nj->ni", r, a_mid - g_e3)
+        ends = rotation_matrix(*euler_from_quaternions(q).T)
+        v_b = np.einsum("nji,nj->ni", ends, v)  # body velocity at each sample
+        paths = _node_deviations(u[:-1], u[1:], u_mid, ratio, w[1:] - w[:-1], v_b[1:] - v_b[:-1])
+        state = np.column_stack((u_mid, xi[:, 9:12], np.einsum("nji,nj->ni", r, xi[:, 3:6])))
+        body, moved = _at_row_state(np.concatenate((f_b, dw_mean), axis=1), state, paths)
+        if notes is not None:
+            names = ("fx", "fy", "fz", "wx'", "wy'", "wz'")
+            notes.append("truth targets taken from the step means to the rows' state (step_targets."
+                         f"_at_row_state): {' '.join(names[j] for j in moved) or 'none'} (the other targets: "
+                         "the two halves of the flight disagree on the shift)")
+        a_mid = np.einsum("nij,nj->ni", r, body[:, :3]) + g_e3
+        dw_mean = body[:, 3:]
+    targets = np.concatenate((a_mid, dw_mean), axis=1)
     return 0.5 * (t[:-1] + t[1:]), xi, u_mid, targets
+
+
+GAUSS_NODES = (0.5 - np.sqrt(3.0) / 6.0, 0.5 + np.sqrt(3.0) / 6.0)  # two-point Gauss-Legendre on [0, 1]
+
+
+def _node_deviations(
+    u_start: np.ndarray, u_end: np.ndarray, u_row: np.ndarray, ratio: float, dw: np.ndarray, dv_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The state's deviation from the row's (M,10 each: u1..u4 rad/s, w FRD rad/s, v_b FRD m/s) at the two
+    Gauss nodes of each step: the rotors on their lag's closed form (lagged_square_moments), the rates and
+    body velocity on the chord of their change over the step (dw, dv_b: end minus start) about the row's
+    step means (their curvature about the mean is orthogonal to what a product with a chord picks up)."""
+    r = float(ratio)
+    c = (u_end - r * u_start) / (1.0 - r)
+    d = u_start - c
+    out = []
+    for tau in GAUSS_NODES:
+        du = c + d * r**tau - u_row
+        out.append(np.concatenate((du, (tau - 0.5) * dw, (tau - 0.5) * dv_b), axis=1))
+    return out[0], out[1]
+
+
+def _quadratic_basis(z: np.ndarray) -> np.ndarray:
+    """1, z_i and z_i z_j (i <= j) of z (M,10: u1..u4, w, v_b), except the products of two different rotors'
+    speeds: the columns of a local quadratic surrogate. Under a controller the rotors move together, so
+    u_i u_j would share the thrust with u_i^2 and u_j^2 and move the targets by their differences in
+    curvature (fang-chen-buaa's fz rows 2e-7 -> 3.7e-6 m/s^2 off the SITL with them)."""
+    k = z.shape[1]
+    products = [z[:, i] * z[:, j] for i in range(k) for j in range(i, k) if not (j < 4 and i != j)]
+    return np.column_stack((np.ones(len(z)), z, *products))
+
+
+def _at_row_state(
+    y: np.ndarray, state: np.ndarray, paths: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, list[int]]:
+    """Step-mean targets y (M,6: body specific force m/s^2, angular acceleration rad/s^2) taken to the
+    row's state (M,10: u_i as their RMS over the step, w and v_b as their step means).
+
+    A target's step mean is the mean of f over the state's path, not f at the row's state: a product of
+    two quantities that change within the step (the rotors' gyroscopic u_i w_j, rotor drag u_i v_b) has the
+    mean of the product, not the product of the means (and a u-linear term sees the RMS speed, not the
+    mean). Measured on a closed-loop fang-chen-aero flight (every command changes every step), against a
+    dense replay of each step: f at the row's state was 7.5e-4 rad/s^2 RMS off the step mean of wx'.
+    The difference mean - f(row) is second order in the within-step changes and needs only the curvature
+    of f: a quadratic surrogate P in (u, w, v_b) is fitted to the step means as the mean of P over the two
+    Gauss nodes of each step (_surrogate), and each target moves by P(row) - mean(P at the nodes).
+    A target moves only where that shift is known: surrogates fitted on the flight's first and second
+    halves must agree on it (their shifts' RMS difference, about twice the full fit's error, under
+    SHIFT_AGREEMENT of the shift's RMS). Where a quadratic cannot hold the flight (open-loop paper flights:
+    the rotors at a few common levels, speeds to 20 m/s) the halves disagree and the step means stay
+    (measured there: a shift applied regardless moved fang-chen-aero's az by 2.9e-3 m/s^2 RMS, 1 - R^2
+    1e-9 -> 3.5e-7). Returns (targets, the indices of the targets that moved).
+    """
+    mean, shift = _surrogate_columns(state, paths)
+    out = y.copy()
+    moved = []
+    first = np.arange(len(y)) < len(y) // 2
+    for j in range(y.shape[1]):
+        b = _surrogate(mean, y[:, j])
+        halves = [_surrogate(mean, np.where(part, y[:, j], np.nan)) for part in (first, ~first)]
+        if b is None or halves[0] is None or halves[1] is None:
+            continue
+        ok = np.isfinite(shift).all(axis=1)
+        full = np.sqrt(np.mean((shift[ok] @ b) ** 2))
+        apart = np.sqrt(np.mean((shift[ok] @ (halves[0] - halves[1])) ** 2))
+        if full > 0.0 and apart < SHIFT_AGREEMENT * full:
+            out[:, j] = y[:, j] - shift @ b
+            moved.append(j)
+    return out, moved
+
+
+SHIFT_AGREEMENT = 0.5  # the halves' surrogates must agree on a target's shift to this fraction of its RMS
+
+
+def _surrogate_columns(
+    state: np.ndarray, paths: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(mean over the two Gauss nodes, that mean minus the value at the row) of _quadratic_basis, in the
+    monomials of the physical quantities scaled by their RMS (not centred: u_i^2 is then the thrust's
+    column, whose shift is nil as the rows hold the RMS speeds, and the t rule keeps or drops physical
+    terms)."""
+    scale = np.sqrt(np.nanmean(state**2, axis=0))
+    scale[~(scale > 0.0)] = 1.0
+    basis = [_quadratic_basis((state + dev) / scale) for dev in paths]
+    mean = 0.5 * (basis[0] + basis[1])
+    return mean, mean - _quadratic_basis(state / scale)
+
+
+SURROGATE_T = 5.0  # t ratio a surrogate's column needs to stay: a collinear column's coefficient is noise
+SURROGATE_RIDGE = 1e-8  # ridge on the unit-RMS columns, per row: only for columns that are exactly collinear
+
+
+def _surrogate(a: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """Coefficients (P,) of a surrogate of y (M,) on columns a (M,P), column 0 the constant: ridge-conditioned
+    least squares (SURROGATE_RIDGE) in three passes dropping rows beyond 6 MADs (the ground's reaction),
+    then refitted on the columns whose t ratio is at least SURROGATE_T. A held-command flight's rotors sit
+    at a few common levels, so their u_i w_j columns are exactly collinear and plain least squares gave
+    them coefficients of 1e6 whose shift moved the targets by 1e3 m/s^2; None with too few finite rows."""
+    finite = np.isfinite(a).all(axis=1) & np.isfinite(y)
+    cols = np.arange(a.shape[1])
+    b = np.zeros(0)
+    for attempt in range(2):
+        keep = finite.copy()
+        if keep.sum() < 4 * len(cols):
+            return None
+        x = a[:, cols]
+        scale = np.sqrt(np.mean(x[keep] ** 2, axis=0))
+        scale[scale == 0.0] = 1.0
+        x = np.nan_to_num(x / scale)
+        for _ in range(3):
+            gram = x[keep].T @ x[keep] + SURROGATE_RIDGE * keep.sum() * np.eye(len(cols))
+            b = np.linalg.solve(gram, x[keep].T @ y[keep])
+            res = np.abs(np.nan_to_num(y - x @ b))
+            mad = 1.4826 * np.median(res[keep])
+            keep = finite & (res <= 6.0 * mad + 1e-12)
+        dof = max(int(keep.sum()) - len(cols), 1)
+        cov = np.linalg.pinv(x[keep].T @ x[keep]) * (res[keep] @ res[keep] / dof)
+        t = np.abs(b) / np.sqrt(np.maximum(np.diag(cov), 1e-300))
+        strong = (t >= SURROGATE_T) | (cols == 0)
+        b = b / scale
+        if attempt or strong.all():
+            break
+        cols = cols[strong]
+    out = np.zeros(a.shape[1])
+    out[cols] = b
+    return out
 
 
 def _midpoint_acceleration(
@@ -262,7 +405,12 @@ def _fit_on_rotors(y: np.ndarray, mean_sq: np.ndarray, *extra: np.ndarray) -> np
     """Least-squares coefficients (4 + extra columns + 1, K) of y (M,K) on the steps' mean squared rotor
     speeds, the extra columns and a constant; three passes dropping rows beyond 6 MADs (the ground's
     reaction, touchdowns). None when there are too few finite rows."""
-    a = np.column_stack((mean_sq, *extra, np.ones(len(mean_sq))))
+    return _robust_lstsq(np.column_stack((mean_sq, *extra, np.ones(len(mean_sq)))), y)
+
+
+def _robust_lstsq(a: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """Least-squares coefficients (P, K) of y (M,K) on the columns a (M,P), three passes dropping rows
+    beyond 6 MADs (the ground's reaction, touchdowns); None when there are too few finite rows."""
     keep = np.isfinite(a).all(axis=1) & np.isfinite(y).all(axis=1)
     if keep.sum() < 4 * a.shape[1]:
         return None

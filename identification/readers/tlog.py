@@ -229,7 +229,8 @@ def read_tlog_dataset(
             )
         if ratio is not None:
             g_true = STANDARD_GRAVITY if gravity is None else float(gravity)
-            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true)
+            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true,
+                                                               notes)
             steps = RowFilter(n - 1)
             for reason, bad in filt.reasons:
                 steps.drop(reason, bad[:-1] | bad[1:])
