@@ -473,7 +473,8 @@ class DiscoveryEngine:
             return []
         exprs = columns.space.expressions
         sizes = {i: complexity(exprs[i]) for i in pool}
-        # the constant stays in (or out) as in the pick: a swap changes one term, not the constant's
+        # a swap changes one term, not the constant: the constant stays in (or out) as in the current model,
+        # and one more move toggles it (polish_constant)
         constant = any(t.is_number for t in sympy.Add.make_args(pick.expression))
         occam = s.polish_rule in ("occam", "tolerance")
         yv = self._pick_rows(yh)
@@ -482,6 +483,7 @@ class DiscoveryEngine:
             limit = within_tolerance(best_seen, sel, scale)
         out: list[Candidate] = []
         current = pick
+        heights = columns.space.height_features() if s.polish_split_width >= 2 else np.zeros(len(exprs), bool)
         for _ in range(s.polish_passes):
             M = self._term_columns(terms, columns, X)
             free = [i for i in pool if exprs[i] not in terms]
@@ -489,6 +491,15 @@ class DiscoveryEngine:
             moves: list[list[sympy.Expr]] = []
             for j, f, _rss in ranked[: s.polish_tries]:
                 moves.append([*terms[:j], exprs[free[f]], *terms[j + 1:]])
+            # splits never bring in a height feature: a height law is fitted as a whole (its series, or a
+            # hub law), and a split there only lengthens the series by whichever power suits the flight's
+            # heights (sitl ground effect: h^2 (u1^2 + .. + u4^2) beside the 1/h series, 4 extra terms)
+            splits: list[list[sympy.Expr]] = []
+            motion = [i for i in free if not heights[i]]
+            if s.polish_split_width >= 2 and motion:
+                for j, a, b, _rss in term_splits(M, F[:, motion], y, s.polish_split_width)[: s.polish_tries]:
+                    splits.append([*terms[:j], exprs[motion[a]], exprs[motion[b]], *terms[j + 1:]])
+            moves += splits
             if occam:
                 term_size = [complexity(t) for t in terms]
                 smaller = [(j, f) for j, f, _rss in ranked if sizes[free[f]] < term_size[j]]
@@ -502,13 +513,24 @@ class DiscoveryEngine:
             if not moves:
                 break
             ok = self._refit_moves(moves, columns, X, y, Xh, yh, loss, constant)
+            # the model with its constant toggled: a sensor bias (a constant the sparse paths and the GP
+            # leave out beside a large term) is a local optimum of the swaps; taken as a grow (the
+            # accelerometer's -0.015 m/s^2 on fy of a realistic-sensor flight, pick loss 0.020 -> 0.012)
+            toggled = self._refit_moves([terms], columns, X, y, Xh, yh, loss, not constant) \
+                if s.polish_constant else []
+            ok += toggled
             if s.polish_rule == "occam":
                 # paired t of each move's pick-row losses against the current model's (block means)
                 cur = self._pick_rows(current.evaluate(Xh))
                 t = {id(c): paired_loss_t(yv, self._pick_rows(c.evaluate(Xh)), cur, loss, s.polish_blocks)
                      for c in ok}
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
-                grows = {id(c) for c in ok if s.polish_grow
+                # a split (one term for two features) is taken as a grow: by the standard errors and the
+                # pick's tolerance
+                split_sets = {frozenset(m) for m in splits}
+                grows = {id(c) for c in ok
+                         if (s.polish_grow or frozenset(_product_factors(c.expression)) in split_sets
+                             or any(c is k for k in toggled))
                          and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)}
                 better = [c for c in ok if t[id(c)] < -s.polish_z and (
                     c.complexity <= current.complexity or id(c) in grows)]
@@ -531,6 +553,7 @@ class DiscoveryEngine:
             best_seen = min(best_seen, float(current.holdout_loss))
             out.append(current)
             terms = _product_factors(current.expression)
+            constant = any(t.is_number for t in sympy.Add.make_args(current.expression))
             if not terms:
                 break
         self.stats["polish_swaps"] = len(out)
@@ -1128,11 +1151,67 @@ def term_substitutions(
     outside the model, so RSS(j -> f) = RSS + (u_j.y)^2 - (r.c_perp + (u_j.y)(u_j.c))^2 / (|c_perp|^2 +
     (u_j.c)^2), r the model's residual. A candidate (numerically) inside the model's span (a copy of a
     term, or a combination of them: no new direction), or not finite, is left out. Units: y's squared."""
+    parts = _swap_parts(M, C, y, tol)
+    if parts is None:
+        return []
+    return _ranked_cells(parts[0])
+
+
+def _ranked_cells(new: np.ndarray) -> list[tuple[int, int, float]]:
+    """The finite cells of an RSS table (rows: moves of the model's terms, columns: candidates) as
+    (row, column, RSS), lowest first (stable)."""
+    out = []
+    for idx in np.argsort(new, axis=None, kind="stable"):
+        j, f = divmod(int(idx), new.shape[1])
+        if not np.isfinite(new[j, f]):
+            break
+        out.append((j, f, float(new[j, f])))
+    return out
+
+
+def term_splits(
+    M: np.ndarray, C: np.ndarray, y: np.ndarray, width: int, tol: float = 1e-10
+) -> list[tuple[int, int, int, float]]:
+    """Swaps of one model term for two candidate features, ranked by the model's least-squares RSS on y:
+    [(term j, candidate a, candidate b (a < b), RSS)], lowest first (stable), for the pairs among each
+    term's `width` best single swaps (term_substitutions). With r_j = r + u_j (u_j.y) the residual without
+    term j and c~ = c_perp + u_j (u_j.c) each candidate's part outside the model without j, the pair's RSS
+    is |r_j|^2 - g' G^-1 g, g = (c~.r_j) and G = (c~_a.c~_b): one Gram matrix of the width best per term."""
+    parts = _swap_parts(M, C, y, tol)
+    if parts is None or C.shape[1] < 2:
+        return []
+    new, rss, uy, uc, Cp, num0 = parts
+    out = []
+    for j in range(new.shape[0]):
+        top = np.argsort(new[j], kind="stable")[:width]
+        top = top[np.isfinite(new[j, top])]
+        if len(top) < 2:
+            continue
+        g = num0[top] + uy[j] * uc[j, top]
+        G = Cp[:, top].T @ Cp[:, top] + np.outer(uc[j, top], uc[j, top])
+        base = rss + uy[j] ** 2
+        for a in range(len(top)):
+            for b in range(a + 1, len(top)):
+                sub = G[np.ix_([a, b], [a, b])]
+                det = sub[0, 0] * sub[1, 1] - sub[0, 1] ** 2
+                if not det > tol * sub[0, 0] * sub[1, 1]:
+                    continue  # the two are (nearly) one direction
+                ga, gb = g[a], g[b]
+                gain = (sub[1, 1] * ga * ga - 2.0 * sub[0, 1] * ga * gb + sub[0, 0] * gb * gb) / det
+                fa, fb = sorted((int(top[a]), int(top[b])))
+                out.append((j, fa, fb, float(base - gain)))
+    out.sort(key=lambda item: item[3])
+    return out
+
+
+def _swap_parts(M: np.ndarray, C: np.ndarray, y: np.ndarray, tol: float) -> tuple | None:
+    """term_substitutions' quantities: (RSS per swap (k, m), the model's RSS, u_j.y (k,), u_j.c (k, m),
+    the candidates' parts outside the model (N, m), r.c_perp (m,)); None for an empty or singular model."""
     n, k = M.shape
     A = np.hstack([np.ones((n, 1)), M])
     q, r_ = np.linalg.qr(A)
     if k == 0 or np.min(np.abs(np.diag(r_))) <= 1e-12 * np.max(np.abs(np.diag(r_))):
-        return []
+        return None
     U = q @ np.linalg.inv(r_).T[:, 1:]  # column j: orthogonal to every other column of A
     U /= np.linalg.norm(U, axis=0)
     finite = np.all(np.isfinite(C), axis=0)
@@ -1151,14 +1230,7 @@ def term_substitutions(
     with np.errstate(all="ignore"):
         new = rss + (uy * uy)[:, None] - np.where(usable, num * num / np.where(usable, den, 1.0), 0.0)
     new = np.where(usable, new, np.inf)
-    order = np.argsort(new, axis=None, kind="stable")
-    out = []
-    for idx in order:
-        j, f = divmod(int(idx), new.shape[1])
-        if not np.isfinite(new[j, f]):
-            break
-        out.append((j, f, float(new[j, f])))
-    return out
+    return new, rss, uy, uc, Cp, num0
 
 
 def term_merges(
@@ -1207,14 +1279,7 @@ def term_merges(
             with np.errstate(all="ignore"):
                 new[p, start : start + part.shape[1]] = np.where(
                     usable, rss + float(wy[p] @ wy[p]) - num * num / np.where(usable, den, 1.0), np.inf)
-    order = np.argsort(new, axis=None, kind="stable")
-    out = []
-    for idx in order:
-        p, f = divmod(int(idx), new.shape[1])
-        if not np.isfinite(new[p, f]):
-            break
-        out.append((pairs[p][0], pairs[p][1], f, float(new[p, f])))
-    return out
+    return [(pairs[p][0], pairs[p][1], f, rss) for p, f, rss in _ranked_cells(new)]
 
 
 def paired_loss_t(y: np.ndarray, a: np.ndarray, b: np.ndarray, loss: str, blocks: int) -> float:

@@ -123,6 +123,13 @@ class DiscoverySettings:
     # "occam" only: also take a better move that raises the complexity, when it beats the current model by the
     # pick's tolerance too (measured: on closed-loop aero it wrote fz's wz^3 as wz^2 (u1^2+..+u4^2), 3 extras)
     polish_grow: bool = False
+    # split moves: one term of the pick replaced by two pool features, the pairs among each term's
+    # polish_split_width best single swaps (term_splits), the polish_tries best refitted and taken as grows
+    # (better by polish_z standard errors and by the pick's tolerance); below 2: off. A term standing for a
+    # sum of two true ones (|wx| |wy| for wx^2 + wy^2) is a local optimum of one-term swaps
+    polish_split_width: int = 30
+    # one more polish move: the model with its constant toggled (in <-> out), taken as a grow
+    polish_constant: bool = True
     # merge repair (DiscoveryEngine._merge_repair): when the pick without the VIF rule (the t rule kept) is a
     # model the VIF rule sets aside, two of its terms merged into one feature of the space (the polish_tries
     # best merges by least squares, term_merges), kept when it passes the rules and is not worse than that
