@@ -227,9 +227,9 @@ def _node_deviations(
 
 def _quadratic_basis(z: np.ndarray) -> np.ndarray:
     """1, z_i and z_i z_j (i <= j) of z (M,10: u1..u4, w, v_b), except the products of two different rotors'
-    speeds: the columns of a local quadratic surrogate. Under a controller the rotors move together, so
-    u_i u_j would share the thrust with u_i^2 and u_j^2 and move the targets by their differences in
-    curvature (fang-chen-buaa's fz rows 2e-7 -> 3.7e-6 m/s^2 off the SITL with them)."""
+    speeds: the columns of a local quadratic surrogate. A rotor's thrust and torques are its own; under a
+    controller the rotors move together, so u_i u_j columns would only share the thrust with u_i^2 and
+    u_j^2 (whose shifts are nil: the rows hold the RMS speeds) and lend it their own shifts."""
     k = z.shape[1]
     products = [z[:, i] * z[:, j] for i in range(k) for j in range(i, k) if not (j < 4 and i != j)]
     return np.column_stack((np.ones(len(z)), z, *products))
