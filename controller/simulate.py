@@ -94,8 +94,15 @@ class ModelPlant:
         if self.tm <= 0.0:
             self._s[12:16] = cmd
         h = self.dt / self.substeps
+        # the motor lag from its closed form over each substep, as the SITL takes it (sitl.dynamics)
+        lag_half = math.exp(-0.5 * h / self.tm) if self.tm > 0.0 else 0.0
         for _ in range(self.substeps):
-            self._s = rk4_step(self._deriv, self._s, cmd, h)
+            known = None
+            if self.tm > 0.0:
+                d = [self._s[12 + i] - cmd[i] for i in range(4)]
+                known = ([c + e * lag_half for c, e in zip(cmd, d, strict=True)],
+                         [c + e * lag_half * lag_half for c, e in zip(cmd, d, strict=True)])
+            self._s = rk4_step(self._deriv, self._s, cmd, h, None, known)
             self._apply_ground()
 
     def _apply_ground(self) -> None:
