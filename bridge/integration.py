@@ -38,13 +38,23 @@ def rk4_step(f: Derivative, s: Sequence[float], u: Sequence[float], h: float,
     return stepper(f, s, u, h, k1)
 
 
+def lag_path(
+    values: Sequence[float], targets: Sequence[float], half_decay: float
+) -> tuple[list[float], list[float]]:
+    """rk4_step's `known` for first-order lags toward held targets: (values at h/2, values at h) of
+    c + (x - c) exp(-t/T), half_decay = exp(-h/(2T)). (The SITL's step writes it out for its four rotors.)"""
+    mid = [c + (x - c) * half_decay for x, c in zip(values, targets, strict=True)]
+    end = [c + (x - c) * half_decay * half_decay for x, c in zip(values, targets, strict=True)]
+    return mid, end
+
+
 def _unrolled_rk4(n: int, m: int = 0) -> Stepper:
     """The RK4 step for states of n floats, the last m known (rk4_step), as straight-line code (see the
     module docstring)."""
     idx = range(n)
 
-    def names(p: str, which: range = idx) -> str:
-        return ", ".join(f"{p}{i}" for i in which) + ("," if len(which) == 1 else "")
+    def names(p: str) -> str:
+        return ", ".join(f"{p}{i}" for i in idx) + ("," if n == 1 else "")
 
     def stage(p: str, step: str, tail: str) -> str:
         return "[" + ", ".join(f"s{i} + {step} * {p}{i}" if i < n - m else f"{tail}[{i - n + m}]"

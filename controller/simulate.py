@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import numpy as np
 import sympy
 
-from bridge.integration import rk4_step
+from bridge.integration import lag_path, rk4_step
 from controller.derivation import normalise
 from controller.plugin import Controller, Trajectory, VehicleState
 from identification.model_file import INPUT_NAMES, STATE_NAMES, SYMBOLS, TARGET_NAMES
@@ -97,11 +97,7 @@ class ModelPlant:
         # the motor lag from its closed form over each substep, as the SITL takes it (sitl.dynamics)
         lag_half = math.exp(-0.5 * h / self.tm) if self.tm > 0.0 else 0.0
         for _ in range(self.substeps):
-            known = None
-            if self.tm > 0.0:
-                d = [self._s[12 + i] - cmd[i] for i in range(4)]
-                known = ([c + e * lag_half for c, e in zip(cmd, d, strict=True)],
-                         [c + e * lag_half * lag_half for c, e in zip(cmd, d, strict=True)])
+            known = lag_path(self._s[12:16], cmd, lag_half) if self.tm > 0.0 else None
             self._s = rk4_step(self._deriv, self._s, cmd, h, None, known)
             self._apply_ground()
 

@@ -487,19 +487,19 @@ class DiscoveryEngine:
         for _ in range(s.polish_passes):
             M = self._term_columns(terms, columns, X)
             free = [i for i in pool if exprs[i] not in terms]
-            ranked = term_substitutions(M, F[:, free], y) if free else []
-            moves: list[list[sympy.Expr]] = []
-            for j, f, _rss in ranked[: s.polish_tries]:
-                moves.append([*terms[:j], exprs[free[f]], *terms[j + 1:]])
+            parts = _swap_parts(M, F[:, free], y) if free else None  # one projection: swaps and splits
+            ranked = _ranked_cells(parts[0]) if parts is not None else []
+            singles = [[*terms[:j], exprs[free[f]], *terms[j + 1:]]
+                       for j, f, _rss in ranked[: s.polish_tries]]
             # splits never bring in a height feature: a height law is fitted as a whole (its series, or a
             # hub law), and a split there only lengthens the series by whichever power suits the flight's
             # heights (sitl ground effect: h^2 (u1^2 + .. + u4^2) beside the 1/h series, 4 extra terms)
             splits: list[list[sympy.Expr]] = []
-            motion = [i for i in free if not heights[i]]
-            if s.polish_split_width >= 2 and motion:
-                for j, a, b, _rss in term_splits(M, F[:, motion], y, s.polish_split_width)[: s.polish_tries]:
-                    splits.append([*terms[:j], exprs[motion[a]], exprs[motion[b]], *terms[j + 1:]])
-            moves += splits
+            if s.polish_split_width >= 2 and parts is not None:
+                motion = np.flatnonzero(~heights[free])
+                for j, a, b, _rss in _split_ranking(parts, s.polish_split_width, motion)[: s.polish_tries]:
+                    splits.append([*terms[:j], exprs[free[a]], exprs[free[b]], *terms[j + 1:]])
+            moves: list[list[sympy.Expr]] = singles + splits
             if occam:
                 term_size = [complexity(t) for t in terms]
                 smaller = [(j, f) for j, f, _rss in ranked if sizes[free[f]] < term_size[j]]
@@ -512,25 +512,28 @@ class DiscoveryEngine:
                         moves.append([*terms[:j], *terms[j + 1:]])
             if not moves:
                 break
-            ok = self._refit_moves(moves, columns, X, y, Xh, yh, loss, constant)
+            n_single, n_split = len(singles), len(splits)
+            ok = self._refit_moves(moves[:n_single], columns, X, y, Xh, yh, loss, constant)
+            split_fits = self._refit_moves(moves[n_single:n_single + n_split], columns, X, y, Xh, yh, loss,
+                                           constant)
+            ok += split_fits + self._refit_moves(moves[n_single + n_split:], columns, X, y, Xh, yh, loss,
+                                                 constant)
             # the model with its constant toggled: a sensor bias (a constant the sparse paths and the GP
             # leave out beside a large term) is a local optimum of the swaps; taken as a grow (the
             # accelerometer's -0.015 m/s^2 on fy of a realistic-sensor flight, pick loss 0.020 -> 0.012)
             toggled = self._refit_moves([terms], columns, X, y, Xh, yh, loss, not constant) \
                 if s.polish_constant else []
             ok += toggled
+            grow_moves = {id(c) for c in split_fits + toggled}
             if s.polish_rule == "occam":
                 # paired t of each move's pick-row losses against the current model's (block means)
                 cur = self._pick_rows(current.evaluate(Xh))
                 t = {id(c): paired_loss_t(yv, self._pick_rows(c.evaluate(Xh)), cur, loss, s.polish_blocks)
                      for c in ok}
                 limit = min(limit, within_tolerance(best_seen, sel, scale))
-                # a split (one term for two features) is taken as a grow: by the standard errors and the
-                # pick's tolerance
-                split_sets = {frozenset(m) for m in splits}
-                grows = {id(c) for c in ok
-                         if (s.polish_grow or frozenset(_product_factors(c.expression)) in split_sets
-                             or any(c is k for k in toggled))
+                # a split (one term for two features) or the constant toggled is taken as a grow: by the
+                # standard errors and the pick's tolerance
+                grows = {id(c) for c in ok if (s.polish_grow or id(c) in grow_moves)
                          and current.holdout_loss > within_tolerance(c.holdout_loss, sel, scale)}
                 better = [c for c in ok if t[id(c)] < -s.polish_z and (
                     c.complexity <= current.complexity or id(c) in grows)]
@@ -1178,12 +1181,19 @@ def term_splits(
     term j and c~ = c_perp + u_j (u_j.c) each candidate's part outside the model without j, the pair's RSS
     is |r_j|^2 - g' G^-1 g, g = (c~.r_j) and G = (c~_a.c~_b): one Gram matrix of the width best per term."""
     parts = _swap_parts(M, C, y, tol)
-    if parts is None or C.shape[1] < 2:
+    if parts is None:
         return []
+    return _split_ranking(parts, width, np.arange(C.shape[1]), tol)
+
+
+def _split_ranking(parts: tuple, width: int, cols: np.ndarray, tol: float = 1e-10) -> list:
+    """term_splits from _swap_parts' quantities, the pairs drawn from the candidate columns `cols` only."""
     new, rss, uy, uc, Cp, num0 = parts
-    out = []
+    out: list[tuple[int, int, int, float]] = []
+    if len(cols) < 2:
+        return out
     for j in range(new.shape[0]):
-        top = np.argsort(new[j], kind="stable")[:width]
+        top = cols[np.argsort(new[j, cols], kind="stable")[:width]]
         top = top[np.isfinite(new[j, top])]
         if len(top) < 2:
             continue
@@ -1204,7 +1214,7 @@ def term_splits(
     return out
 
 
-def _swap_parts(M: np.ndarray, C: np.ndarray, y: np.ndarray, tol: float) -> tuple | None:
+def _swap_parts(M: np.ndarray, C: np.ndarray, y: np.ndarray, tol: float = 1e-10) -> tuple | None:
     """term_substitutions' quantities: (RSS per swap (k, m), the model's RSS, u_j.y (k,), u_j.c (k, m),
     the candidates' parts outside the model (N, m), r.c_perp (m,)); None for an empty or singular model."""
     n, k = M.shape

@@ -260,12 +260,12 @@ def _at_row_state(
     out = y.copy()
     moved = []
     first = np.arange(len(y)) < len(y) // 2
+    ok = np.isfinite(shift).all(axis=1)
     for j in range(y.shape[1]):
         b = _surrogate(mean, y[:, j])
         halves = [_surrogate(mean, np.where(part, y[:, j], np.nan)) for part in (first, ~first)]
         if b is None or halves[0] is None or halves[1] is None:
             continue
-        ok = np.isfinite(shift).all(axis=1)
         full = np.sqrt(np.mean((shift[ok] @ b) ** 2))
         apart = np.sqrt(np.mean((shift[ok] @ (halves[0] - halves[1])) ** 2))
         if full > 0.0 and apart < SHIFT_AGREEMENT * full:

@@ -250,6 +250,7 @@ class Quadrotor:
         for _ in range(self.substeps):
             flying = not self._on_ground
             v = s[3], s[4], s[5]
+            # bridge.integration.lag_path written out: this runs every step
             d1, d2, d3, d4 = s[13] - c1, s[14] - c2, s[15] - c3, s[16] - c4
             rotors = ((c1 + d1 * e_half, c2 + d2 * e_half, c3 + d3 * e_half, c4 + d4 * e_half),
                       (c1 + d1 * e_full, c2 + d2 * e_full, c3 + d3 * e_full, c4 + d4 * e_full))
