@@ -51,7 +51,7 @@ from identification.feature_space import (
     grow_unary,
     power_unit,
 )
-from identification.hub_law import HUB_PRIMITIVES, fit_hub_law
+from identification.hub_law import HUB_PRIMITIVES, HubLaw, fit_hub_law
 from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
@@ -207,7 +207,7 @@ class DiscoveryEngine:
         s = self.settings
         start = time.perf_counter()
         self._features = {}
-        key = (s, hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest())
+        key = (s, _rows_key(X))
         if s.rungs < 3 and _LAST_SPACE.get("key") == key:  # the six targets of one flight share it
             space, F, Z = _LAST_SPACE["space"], _LAST_SPACE["F"], _LAST_SPACE["Z"]
         else:
@@ -255,15 +255,19 @@ class DiscoveryEngine:
         # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
+        series: tuple | None = None  # the state the last hub law was added to
+        fitted = None  # that law (identification.hub_law.HubLaw)
         rnd, last = 0, max(s.rounds, 1)  # rounds run while rnd < last (a hub law adds rounds)
         while rnd < last:
             law_now = False
             if fit_law:
                 fit_law = False
                 laws += 1
-                added = self._add_hub_law(best, space, columns, F, y, X, (Xh, yh, loss))
+                added = self._add_hub_law(best, space, columns, F, y, X)
                 if added is not None:
-                    space, law, columns = added
+                    # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
+                    series = series or (best, len(candidates), space, columns, F, Z, pool)
+                    space, law, columns, fitted = added
                     F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
                     Z = np.hstack([Z, _standardized(F[:, [law]])])
                     off = space.height_features()
@@ -309,14 +313,17 @@ class DiscoveryEngine:
             stop = not law_now and (stale >= max(s.patience, 1) or _exact(best, scale))
             if law_now:
                 stale = 0
-            # the first round that found nothing better is where the series is as good as it gets
-            settled = not law_now and (stale >= 1 or _exact(best, scale) or rnd + 1 >= last)
-            if settled and self._law_due(best, space, laws):
+            # a law is fitted where the series' own rounds end, so a law not kept leaves the model the
+            # series reached (the same as with no law)
+            if (stop or rnd + 1 >= last) and not law_now and self._law_due(best, space, laws):
                 fit_law, stale, last = True, 0, max(last, rnd + 2 + max(s.patience - 1, 0))
             elif stop:
                 break
             rnd += 1
         self.stats["rounds"] = min(rnd + 1, last)
+        if series is not None and not self._keep_law(best, series[0], X, Xh, yh, loss, fitted):
+            best, n, space, columns, F, Z, pool = series
+            del candidates[n:]
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
         if best is not None and budget > 0:
@@ -358,13 +365,11 @@ class DiscoveryEngine:
         F: np.ndarray,
         y: np.ndarray,
         X: np.ndarray,
-        pick_rows: tuple[np.ndarray, np.ndarray, str],
-    ) -> tuple[FeatureSpace, int, _Columns] | None:
+    ) -> tuple[FeatureSpace, int, _Columns, HubLaw] | None:
         """The pick's height terms refit as one hub law (identification.hub_law) beside its other terms, the
-        law added to a copy of the space: (that space, the law's index, its columns), or None (no finite fit,
-        the law already in the space, or with hub_law_evidence a law no better than the pick's series on the
-        pick rows). F, y: fit rows (weak rows in the weak form); X: the fit rows' variables; pick_rows:
-        (Xh, yh, loss)."""
+        law added to a copy of the space: (that space, the law's index, its columns, the law), or None (no
+        finite fit, or the law already in the space). F, y: fit rows (weak rows in the weak form); X: the fit
+        rows' variables."""
         s = self.settings
         mask = space.height_features()
         rest_idx = [int(i) for i in self._features.get(id(best), ()) if not mask[int(i)]]
@@ -372,12 +377,13 @@ class DiscoveryEngine:
         rest = np.hstack([self._on_fit_rows(np.ones((len(X), 1))), F[:, rest_idx]])
         P = columns.primitives(X)
         inputs = P[:, [space.primitives.index(n) for n in HUB_PRIMITIVES]]
-        start = time.perf_counter()
-        # a hub is where it is for every target: the flight's last fitted offsets are the starting point
-        key = hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest()
-        fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak,
-                             s.hub_law_evaluations, _LAST_HUB.get(key))
-        self.timings["hub_law"] = time.perf_counter() - start
+        clock = time.perf_counter()
+        # a hub is where it is for every target: a law refit starts where the last one ended, a first law
+        # where the flight's last kept offsets are
+        start = np.asarray(space.laws[-1].offsets) if space.laws else _LAST_HUB.get(_rows_key(X))
+        fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
+                             s.hub_law_airspeed)
+        self.timings["hub_law"] = self.timings.get("hub_law", 0.0) + time.perf_counter() - clock
         if fitted is None:
             return None
         grown = space.copy()
@@ -385,45 +391,39 @@ class DiscoveryEngine:
         index = grown.add_law(fitted, power_unit(PRIMITIVES["u1"].unit, 2))
         if index is None:
             return None
-        grown_columns = _Columns(grown)
-        better = self._law_is_better(best, grown_columns, index, rest_idx, F, y, X, pick_rows)
-        if s.hub_law_evidence and not better:
-            self.stats["hub_law"] = "fitted, not kept: not better than the series on the pick rows"
-            return None
-        _LAST_HUB.clear()
-        _LAST_HUB[key] = np.asarray(fitted.offsets)
-        self.stats["hub_offsets_m"] = [list(r) for r in fitted.offsets]
-        return grown, index, grown_columns
+        return grown, index, _Columns(grown), fitted
 
-    def _law_is_better(
+    def _keep_law(
         self,
         best: Candidate,
-        law_cols: _Columns,
-        law: int,
-        rest_idx: list[int],
-        F: np.ndarray,
-        y: np.ndarray,
+        series_best: Candidate,
         X: np.ndarray,
-        pick_rows: tuple[np.ndarray, np.ndarray, str],
+        Xh: np.ndarray,
+        yh: np.ndarray,
+        loss: str,
+        law: HubLaw | None,
     ) -> bool:
-        """Whether the pick with its height terms replaced by the hub law (least squares on the fit rows) is
-        better than the pick on the pick rows by more than polish_z standard errors (paired_loss_t): the law
-        replaces a series that already holds the height dependence only on evidence (a flight whose tilts
+        """Whether the pick of the rounds a hub law was added to is kept over the pick its series had
+        reached: with hub_law_evidence only when better on the pick rows by more than polish_z standard
+        errors (paired_loss_t). Judged after the law's rounds, not when it is fitted: the law is fitted
+        beside a pick the series has shaped (terms the series held in its place are missing), so at first
+        it is seldom better, and the terms it lets the rounds find are its evidence. A flight whose tilts
         keep the hubs' offsets small against the height has a series as good, and the law's sixteen
-        coefficients then fit the targets' errors)."""
-        Xh, yh, loss = pick_rows
-        idx = np.asarray([*rest_idx, law], int)
-        A = np.hstack([self._on_fit_rows(np.ones((len(X), 1))), F[:, rest_idx],
-                       self._on_fit_rows(law_cols(X, np.asarray([law])))])
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        if not np.all(np.isfinite(coef)):
-            return False
-        pred = law_cols(Xh, idx) @ coef[1:] + coef[0]
-        yv = self._pick_rows(yh)
-        t = paired_loss_t(yv, self._pick_rows(pred), self._pick_rows(best.evaluate(Xh)), loss,
-                          self.settings.polish_blocks)
+        coefficients then fit the targets' errors: the series stays."""
+        s = self.settings
+        t = paired_loss_t(self._pick_rows(yh), self._pick_rows(best.evaluate(Xh)),
+                          self._pick_rows(series_best.evaluate(Xh)), loss, s.polish_blocks)
         self.stats["hub_law_t"] = float(t)
-        return bool(t < -self.settings.polish_z)
+        if s.hub_law_evidence and not t < -s.polish_z:
+            self.stats["hub_law"] = ("fitted, not kept: its rounds' pick no better than the series' on the "
+                                     "pick rows")
+            return False
+        if law is not None:
+            _LAST_HUB.clear()
+            _LAST_HUB[_rows_key(X)] = np.asarray(law.offsets)
+            self.stats["hub_offsets_m"] = [list(r) for r in law.offsets]
+        self.stats["hub_law"] = "kept"
+        return True
 
     def _polish(
         self,
@@ -915,6 +915,11 @@ class DiscoveryEngine:
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
 _LAST_HUB: dict[str, np.ndarray] = {}  # the last training data's fitted hub offsets (4, 3) m (one entry)
+
+
+def _rows_key(X: np.ndarray) -> str:
+    """A digest of a training flight's rows (what the space and the hub offsets are cached under)."""
+    return hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest()
 # the residual's model between rounds: identify's held-out pick without its identification rules (t ratio,
 # VIF). A round's models are incomplete: their residual is the physics still to find, smooth, so its
 # effective sample size is tens of rows and every t ratio is small; which few pass is chance (with t ratios

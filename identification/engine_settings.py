@@ -147,10 +147,15 @@ class DiscoverySettings:
     # where the series already holds the law) 36/0/0 becomes 36/0/2 (a constant in dwx and dwy)
     hub_law_fits: int = 0
     hub_law_powers: int = 4
-    # the law is kept only when the pick with it beats the pick with its series on the pick rows by more than
-    # polish_z standard errors (paired, polish_blocks blocks)
+    # the law is kept only when the pick its rounds reach beats the pick the series had reached on the pick
+    # rows by more than polish_z standard errors (paired, polish_blocks blocks); else the series' model stays
     hub_law_evidence: bool = True
     hub_law_evaluations: int = 400
+    # the law also holds each hub's squared in-plane airspeed (v_b + w x r_i, body x-y) per power of 1/H_i:
+    # the ground multiplies a rotor's whole thrust, and that grows with its airspeed (translational lift).
+    # Off by default, measured (session 12, README): on closed-loop fang-chen-aero the laws of fz and dwx
+    # 0.39/1.71 % -> 0.28/0.24 %, but dwy 4.90 -> 5.20 %, the structure 137/6/1 -> 136/7/4, CPU +23 %
+    hub_law_airspeed: bool = False
 
 
 @dataclass(frozen=True)

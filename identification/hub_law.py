@@ -19,6 +19,17 @@ least_squares from r = 0, every hub at the CG). Nothing of the law's form is giv
 are the rotor hubs (0.16, +-0.16, -0.03 m; true 0.164, +-0.159, -0.04 from the CG) and the law's error falls
 6x. The engine adds L as one feature with its b_ik fixed (one column, one coefficient: a series of
 collinear columns would fail the pick's VIF rule), in place of the series.
+
+A rotor's thrust is not u_i^2 alone: it grows with the hub's in-plane airspeed (translational lift), and the
+ground multiplies all of it. With `airspeed` the law holds that part as well,
+
+    L = sum_i sum_k (b_ik u_i^2 + c_ik s_i) / H_i^k
+    s_i = (ub + wy r_iz - wz r_iy)^2 + (vb + wz r_ix - wx r_iz)^2
+
+s_i (m^2/s^2) the squared in-plane (body x-y) speed of hub i, v_b + w x r_i, at the same fitted offsets; the
+c_ik free (zero where the rotors' thrust does not depend on airspeed). On closed-loop fang-chen-aero, with
+the true offsets and far-field terms, the u_i^2 form misses the law by 0.23/0.42/0.34 % (fz/dwx/dwy), with
+airspeed by 0.035/0.044/0.062 %: the rest of the model's small terms are below the first figures.
 """
 
 from __future__ import annotations
@@ -31,16 +42,19 @@ from scipy.optimize import least_squares
 
 from identification.body_frame import PRIMITIVE_SYMBOLS
 
-# the primitives a hub law reads, in this order (the columns of `hub_inputs`)
-HUB_PRIMITIVES: tuple[str, ...] = ("h", "gx", "gy", "u1", "u2", "u3", "u4")
+# the primitives a hub law reads, in this order (its input columns): height (m), gravity direction
+# (FRD), rotor speeds (rad/s), then body velocity (m/s FRD) and rates (rad/s FRD) for the hubs' airspeed
+HUB_PRIMITIVES: tuple[str, ...] = ("h", "gx", "gy", "u1", "u2", "u3", "u4", "ub", "vb", "wx", "wy", "wz")
 
 
 @dataclass(frozen=True)
 class HubLaw:
-    """A fitted hub law: offsets (4, 3) m FRD per rotor, coefficients (4, K) per rotor and power 1..K."""
+    """A fitted hub law: offsets (4, 3) m FRD per rotor, coefficients (4, K) of u_i^2 per rotor and power
+    1..K, and airspeed (4, K) of the hub's squared in-plane airspeed (empty: none)."""
 
     offsets: tuple[tuple[float, float, float], ...]
     coefficients: tuple[tuple[float, ...], ...]
+    airspeed: tuple[tuple[float, ...], ...] = ()
 
     @property
     def powers(self) -> int:
@@ -48,18 +62,25 @@ class HubLaw:
         return len(self.coefficients[0])
 
     def values(self, inputs: np.ndarray) -> np.ndarray:
-        """The law's values (N,) from hub_inputs columns (N, 7: h m, gx, gy, u1..u4 rad/s)."""
-        return hub_columns(inputs, np.asarray(self.offsets), self.powers) @ np.ravel(self.coefficients)
+        """The law's values (N,) from its input columns (N, 12: HUB_PRIMITIVES)."""
+        b = np.ravel(self.coefficients)
+        if self.airspeed:
+            b = np.concatenate([b, np.ravel(self.airspeed)])
+        return hub_columns(inputs, np.asarray(self.offsets), self.powers, bool(self.airspeed)) @ b
 
     def expression(self) -> sympy.Expr:
-        """The law in the primitive names (an Add of b_ik u_i^2 / H_i^k)."""
+        """The law in the primitive names (an Add of (b_ik u_i^2 + c_ik s_i) / H_i^k)."""
         s = PRIMITIVE_SYMBOLS
         gz = sympy.sqrt(1 - s["gx"] ** 2 - s["gy"] ** 2)
         terms = []
-        for i, (r, b) in enumerate(zip(self.offsets, self.coefficients, strict=True)):
-            hub = s["h"] - sympy.Float(r[0]) * s["gx"] - sympy.Float(r[1]) * s["gy"] - sympy.Float(r[2]) * gz
+        airspeed = self.airspeed or ((0.0,) * self.powers,) * 4
+        for i, (r, b, c) in enumerate(zip(self.offsets, self.coefficients, airspeed, strict=True)):
+            rx, ry, rz = (sympy.Float(v) for v in r)
+            hub = s["h"] - rx * s["gx"] - ry * s["gy"] - rz * gz
             u2 = s[f"u{i + 1}"] ** 2
+            v2 = (s["ub"] + s["wy"] * rz - s["wz"] * ry) ** 2 + (s["vb"] + s["wz"] * rx - s["wx"] * rz) ** 2
             terms += [sympy.Float(bk) * u2 / hub ** (k + 1) for k, bk in enumerate(b) if bk != 0.0]
+            terms += [sympy.Float(ck) * v2 / hub ** (k + 1) for k, ck in enumerate(c) if ck != 0.0]
         return sympy.Add(*terms)
 
 
@@ -71,13 +92,26 @@ def hub_heights(inputs: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return h[:, None] - G @ np.asarray(offsets, float).T
 
 
-def hub_columns(inputs: np.ndarray, offsets: np.ndarray, powers: int) -> np.ndarray:
-    """u_i^2 / H_i^k (N, 4*powers), rotor-major (rotor i's k = 1..powers together); hub heights at or below
-    zero (a rotor below the ground: impossible) give inf, so no fit keeps such offsets."""
+def hub_airspeeds(inputs: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Each hub's squared in-plane airspeed (N, 4) m^2/s^2: the body x-y part of v_b + w x r_i (FRD)."""
+    ub, vb, wx, wy, wz = (inputs[:, j] for j in range(7, 12))
+    r = np.asarray(offsets, float)
+    vx = ub[:, None] + wy[:, None] * r[:, 2] - wz[:, None] * r[:, 1]
+    vy = vb[:, None] + wz[:, None] * r[:, 0] - wx[:, None] * r[:, 2]
+    return vx * vx + vy * vy
+
+
+def hub_columns(inputs: np.ndarray, offsets: np.ndarray, powers: int, airspeed: bool = False) -> np.ndarray:
+    """u_i^2 / H_i^k (N, 4*powers), rotor-major (rotor i's k = 1..powers together), then with airspeed
+    s_i / H_i^k likewise (the hubs' squared in-plane airspeeds); hub heights at or below zero (a rotor below
+    the ground: impossible) give inf, so no fit keeps such offsets."""
     H = hub_heights(inputs, offsets)
     with np.errstate(all="ignore"):
         H = np.where(H > 0.0, H, 0.0)
         out = [inputs[:, 3 + i] ** 2 / H[:, i] ** k for i in range(4) for k in range(1, powers + 1)]
+        if airspeed:
+            S = hub_airspeeds(inputs, offsets)
+            out += [S[:, i] / H[:, i] ** k for i in range(4) for k in range(1, powers + 1)]
     return np.column_stack(out)
 
 
@@ -89,25 +123,26 @@ def fit_hub_law(
     weak: np.ndarray | None = None,
     max_evaluations: int = 400,
     start: np.ndarray | None = None,
+    airspeed: bool = False,
 ) -> HubLaw | None:
     """The hub law that, beside `rest` (N', m: the model's other terms and a constant), best fits y (N',) in
-    least squares. inputs: hub_inputs columns (N, 7) of the fit rows; weak: the weak form's test functions
-    (N', N) applied to the law's columns (None: point rows, N' = N). Offsets bounded by the flight's median
-    height per component (a hub farther from the CG than the vehicle flies high could not be told from the
-    height itself). Budget in function evaluations; start: the offsets (4, 3) m to start from (None: every
-    hub at the CG). None when no finite fit."""
+    least squares. inputs: HUB_PRIMITIVES columns (N, 12) of the fit rows; weak: the weak form's test
+    functions (N', N) applied to the law's columns (None: point rows, N' = N). Offsets bounded by the
+    flight's median height per component (a hub farther from the CG than the vehicle flies high could not be
+    told from the height itself). Budget in function evaluations; start: the offsets (4, 3) m to start from
+    (None: every hub at the CG); airspeed: the hubs' in-plane airspeed terms too. None when no finite fit."""
     inputs = np.asarray(inputs, float)
     y = np.asarray(y, float)
     Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
     y_perp = y - Q @ (Q.T @ y)
     scale = float(np.sqrt(np.mean(y_perp**2))) or 1.0
 
-    def law_cols(r: np.ndarray) -> np.ndarray:
-        L = hub_columns(inputs, r.reshape(4, 3), powers)
+    def law_cols(r: np.ndarray, with_airspeed: bool) -> np.ndarray:
+        L = hub_columns(inputs, r.reshape(4, 3), powers, with_airspeed)
         return L if weak is None else np.asarray(weak @ L)
 
-    def solve(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        L = law_cols(r)
+    def solve(r: np.ndarray, with_airspeed: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        L = law_cols(r, with_airspeed)
         if not np.all(np.isfinite(L)):
             return np.full(len(y), 1e3 * scale), np.zeros(L.shape[1])
         L_perp = L - Q @ (Q.T @ L)
@@ -123,8 +158,11 @@ def fit_hub_law(
     x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
     sol = least_squares(lambda r: solve(r)[0] / scale, x0, bounds=(-bound, bound),
                         x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations)
-    residual, b = solve(sol.x)
+    # the airspeed terms at the offsets the rotor speeds place: near r = 0 the four hubs' airspeeds are one
+    # column, and a fit of the offsets through them would differentiate a rank-deficient projection
+    residual, b = solve(sol.x, airspeed)
     if not np.all(np.isfinite(b)) or not np.all(np.isfinite(residual)):
         return None
     offsets = tuple(tuple(float(v) for v in row) for row in sol.x.reshape(4, 3))
-    return HubLaw(offsets, tuple(tuple(float(v) for v in row) for row in b.reshape(4, powers)))
+    rows = [tuple(float(v) for v in row) for row in b.reshape(-1, powers)]
+    return HubLaw(offsets, tuple(rows[:4]), tuple(rows[4:]))

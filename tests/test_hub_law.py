@@ -71,9 +71,10 @@ def test_the_hubs_are_found_from_the_thrust_alone():
 
 def test_the_law_is_one_feature_whose_column_and_expression_agree():
     law = HubLaw(((0.16, 0.16, -0.03), (-0.16, -0.16, -0.03), (0.16, -0.16, -0.03), (-0.16, 0.16, -0.03)),
-                 ((1e-6, -2e-7, 3e-8), (2e-6, 0.0, 1e-8), (1e-6, 1e-7, 0.0), (3e-6, -1e-7, 2e-8)))
+                 ((1e-6, -2e-7, 3e-8), (2e-6, 0.0, 1e-8), (1e-6, 1e-7, 0.0), (3e-6, -1e-7, 2e-8)),
+                 ((1e-3, 0.0, 2e-4), (0.0, 0.0, 0.0), (-1e-3, 3e-4, 0.0), (2e-3, 0.0, 1e-4)))
     X = _rows(400, 2)
-    names = ("u1", "u2", "u3", "u4", "h", "gx", "gy", "wx")
+    names = ("u1", "u2", "u3", "u4", "h", "gx", "gy", "ub", "vb", "wb", "wx", "wy", "wz")
     P = primitive_matrix(X, names)
     space = grow_unary(names, ("pow", "inv", "tilt"), P, near_inverse_powers=3)
     index = space.add_law(law, (0, -2))
@@ -87,7 +88,18 @@ def test_the_law_is_one_feature_whose_column_and_expression_agree():
     # the height features: the law, every power of h and the gradients, not the rotors or the rates
     marked = {str(e) for e, m in zip(space.expressions, space.height_features(), strict=True) if m}
     assert {"h", "1/h", "h**(-3)", "gy/h**3"} <= marked and str(space.expressions[index]) in marked
-    assert not marked & {"u1", "u1**2", "wx", "wx**2"}
+    assert not marked & {"u1", "u1**2", "wx", "wx**2", "ub", "ub**2"}
+    # the airspeed part: each hub's in-plane (body x-y) speed v_b + w x r_i, squared, over the powers of 1/H_i
+    P12 = primitive_matrix(X, HUB_PRIMITIVES)
+    H = hub_heights(P12, np.asarray(law.offsets))
+    v_b, w = primitive_matrix(X, ("ub", "vb", "wb")), primitive_matrix(X, ("wx", "wy", "wz"))
+    expected = np.zeros(len(X))
+    for i, r in enumerate(law.offsets):
+        v_hub = v_b + np.cross(w, np.asarray(r))
+        s_i = v_hub[:, 0] ** 2 + v_hub[:, 1] ** 2
+        expected += sum(c * s_i / H[:, i] ** (k + 1) for k, c in enumerate(law.airspeed[i]))
+    np.testing.assert_allclose(law.values(P12) - HubLaw(law.offsets, law.coefficients).values(P12), expected,
+                               rtol=1e-10, atol=1e-12 * np.abs(expected).max())
     # every hub's height: h - r . g
     H = hub_heights(primitive_matrix(X, HUB_PRIMITIVES), np.asarray(law.offsets))
     g = primitive_matrix(X, ("gx", "gy", "gz"))
@@ -136,6 +148,13 @@ def test_the_law_is_kept_only_on_evidence_against_the_series():
     best = select(cands, SelectionSettings(), float(np.std(yh)))
     assert sympy.simplify(height_terms(best.expression) - law) == 0 or \
         height_law_error(best.expression, law, _rows(500, 9)) < 1e-6, best.expression
+    # a law not kept leaves nothing behind: no candidate holds it, and the model is the one the engine
+    # reaches with the law off (the law is fitted where the series' rounds end, its rounds then undone)
+    assert not any("sqrt(-gx**2 - gy**2 + 1)" in str(c.expression) for c in cands)  # the law (gz)
+    off = DiscoveryEngine(DiscoverySettings(hub_law_fits=0)).fit(Xt, yt, "dwx", 2, 0, "absolute", None,
+                                                                 (Xh, yh))
+    attach_holdout(off, Xh, yh, "absolute")
+    assert str(select(off, SelectionSettings(), float(np.std(yh))).expression) == str(best.expression)
 
 
 def test_the_copyable_settings_file_turns_the_law_on_and_the_default_is_off():
@@ -144,3 +163,21 @@ def test_the_copyable_settings_file_turns_the_law_on_and_the_default_is_off():
     assert DiscoverySettings().hub_law_fits == 0
     with pytest.raises(UserError, match="hub_law_powers"):
         DiscoveryEngine(DiscoverySettings(hub_law_fits=1, hub_law_powers=0))
+
+
+def test_the_law_holds_the_ground_on_a_rotors_airspeed_thrust():
+    # fang-chen-aero: translational lift (each hub's in-plane airspeed) in every rotor's thrust, and the
+    # ground multiplies all of it; the u_i^2 law alone misses that part, with the hubs' airspeeds it does not
+    aero = load_vehicle(str(REPO / "sitl" / "vehicles" / "fang-chen-aero.yaml"))
+    truth = true_body_expressions(aero)["fz"]
+    far = true_body_expressions(aero.with_overrides(ground="none"))["fz"]
+    X, Xv = _rows(3000, 3), _rows(1000, 4)
+    y = body_values(truth, X)
+    inputs = primitive_matrix(X, HUB_PRIMITIVES)
+    rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+    errors = {}
+    for airspeed in (False, True):
+        law = fit_hub_law(inputs, y, rest, 4, airspeed=airspeed)
+        assert law is not None and bool(law.airspeed) == airspeed
+        errors[airspeed] = height_law_error(law.expression() + far, truth - far, Xv)
+    assert errors[True] < 0.25 * errors[False], errors
