@@ -255,8 +255,7 @@ class DiscoveryEngine:
         # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
-        series: tuple | None = None  # the state the last hub law was added to
-        fitted = None  # that law (identification.hub_law.HubLaw)
+        series: tuple | None = None  # the state the first hub law was added to
         rnd, last = 0, max(s.rounds, 1)  # rounds run while rnd < last (a hub law adds rounds)
         while rnd < last:
             law_now = False
@@ -267,7 +266,7 @@ class DiscoveryEngine:
                 if added is not None:
                     # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
                     series = series or (best, len(candidates), space, columns, F, Z, pool)
-                    space, law, columns, fitted = added
+                    space, law, columns = added
                     F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
                     Z = np.hstack([Z, _standardized(F[:, [law]])])
                     off = space.height_features()
@@ -321,7 +320,7 @@ class DiscoveryEngine:
                 break
             rnd += 1
         self.stats["rounds"] = min(rnd + 1, last)
-        if series is not None and not self._keep_law(best, series[0], X, Xh, yh, loss, fitted):
+        if series is not None and not self._keep_law(best, series[0], X, Xh, yh, loss, space.laws[-1]):
             best, n, space, columns, F, Z, pool = series
             del candidates[n:]
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
@@ -365,9 +364,9 @@ class DiscoveryEngine:
         F: np.ndarray,
         y: np.ndarray,
         X: np.ndarray,
-    ) -> tuple[FeatureSpace, int, _Columns, HubLaw] | None:
+    ) -> tuple[FeatureSpace, int, _Columns] | None:
         """The pick's height terms refit as one hub law (identification.hub_law) beside its other terms, the
-        law added to a copy of the space: (that space, the law's index, its columns, the law), or None (no
+        law added to a copy of the space: (that space, the law's index, its columns), or None (no
         finite fit, or the law already in the space). F, y: fit rows (weak rows in the weak form); X: the fit
         rows' variables."""
         s = self.settings
@@ -391,7 +390,7 @@ class DiscoveryEngine:
         index = grown.add_law(fitted, power_unit(PRIMITIVES["u1"].unit, 2))
         if index is None:
             return None
-        return grown, index, _Columns(grown), fitted
+        return grown, index, _Columns(grown)
 
     def _keep_law(
         self,
@@ -401,7 +400,7 @@ class DiscoveryEngine:
         Xh: np.ndarray,
         yh: np.ndarray,
         loss: str,
-        law: HubLaw | None,
+        law: HubLaw,
     ) -> bool:
         """Whether the pick of the rounds a hub law was added to is kept over the pick its series had
         reached: with hub_law_evidence only when better on the pick rows by more than polish_z standard
@@ -418,10 +417,9 @@ class DiscoveryEngine:
             self.stats["hub_law"] = ("fitted, not kept: its rounds' pick no better than the series' on the "
                                      "pick rows")
             return False
-        if law is not None:
-            _LAST_HUB.clear()
-            _LAST_HUB[_rows_key(X)] = np.asarray(law.offsets)
-            self.stats["hub_offsets_m"] = [list(r) for r in law.offsets]
+        _LAST_HUB.clear()
+        _LAST_HUB[_rows_key(X)] = np.asarray(law.offsets)
+        self.stats["hub_offsets_m"] = [list(r) for r in law.offsets]
         self.stats["hub_law"] = "kept"
         return True
 
