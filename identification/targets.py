@@ -57,6 +57,10 @@ class SensorTargetSettings:
     polyorder: int = 2
     smooth_accel: bool = True  # smooth the specific force too (value, not derivative)
     max_window_s: float = 0.4
+    # a log with the SITL's step structure (our .tlog: commands held over 4 ms steps): one row per step
+    # interval instead, the gyro's difference over the step and the accelerometer's two ends averaged
+    # (identification.readers.tlog); for the weak form, which integrates these raw targets
+    step_intervals: bool = False
 
     def window_samples(self, dt: float) -> int:
         """Odd fixed window length in samples for sample interval dt (s), at least polyorder + 2."""

@@ -12,6 +12,13 @@ mean accelerations over the step, the state and rotor speeds those of the midpoi
 (identification.step_targets). Held commands (paper-train): one row per step clear of a command change (the
 7-point stencil; POINT_ROWS_ABOVE); no commands or no visible motor lag: kink-aware point derivatives.
 
+Raw sensor targets for the weak form (SensorTargetSettings.step_intervals: identification.weak_form's
+RAW_SENSOR_TARGETS) of a log with rotor speeds and commands: one row per step interval too, the gyro's
+difference over the step (its exact mean derivative) and the accelerometer's mean over it (its two ends
+averaged plus what the rotors' lag adds within the step: _interval_specific_force), the regressors those of
+the truth targets' rows (identification.step_targets; not moved to the row state: that shift is fitted to
+the truth accelerations).
+
 Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
 free-flight equations do not hold) are dropped, as are rows whose differentiation stencil would span a
 missing step or a resting row. Sensor targets also drop rows whose window holds a clamped IMU sample
@@ -28,7 +35,7 @@ import numpy as np
 
 from bridge.errors import UserError
 from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT, RPM_TO_RAD_S, ObservationAssembler
-from bridge.rotations import euler_from_quaternions
+from bridge.rotations import euler_from_quaternions, rotation_matrix
 from bridge.tlog import read_tlog
 from identification.readers import RowFilter, make_dataset, rotor_model
 from identification.step_targets import motor_lag_ratio, step_interval_rows
@@ -231,12 +238,7 @@ def read_tlog_dataset(
             g_true = STANDARD_GRAVITY if gravity is None else float(gravity)
             t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true,
                                                                notes)
-            steps = RowFilter(n - 1)
-            for reason, bad in filt.reasons:
-                steps.drop(reason, bad[:-1] | bad[1:])
-            steps.drop("step interval over a missing step", np.diff(times) != round(STEP_S * 1e6))
-            if rate_hz is not None:
-                steps.drop(f"decimated to {rate_hz:g} Hz", (times[:-1] // 4000) % decimation != 0)
+            steps = _interval_filter(filt, times, rate_hz, decimation)
             notes.append(
                 "truth targets: exact mean accelerations over each 4 ms step, rows at step midpoints "
                 f"(motor lag ratio {ratio:.6f} per step, Tm = {-STEP_S / np.log(ratio) * 1000:.2f} ms, "
@@ -245,6 +247,27 @@ def read_tlog_dataset(
             return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
         elif central < POINT_ROWS_ABOVE:
             notes.append("truth targets: no motor lag seen in the log's speeds; kink-aware point derivatives")
+    raw_steps = sensor_settings is not None and sensor_settings.step_intervals
+    if targets == "sensors" and raw_steps and rotor is None and throttles is not None and step_intervals:
+        ratio = motor_lag_ratio(u, throttles, usable)
+        if ratio is not None:
+            g = STANDARD_GRAVITY if gravity is None else float(gravity)
+            t_mid, xi_mid, u_mid, _ = step_interval_rows(t, pos, vel, quat, rates, u, ratio)
+            steps = _interval_filter(filt, times, rate_hz, decimation)
+            clipped = _clamped_imu(acc, gyro)
+            steps.drop("IMU sample clamped at an end of the step (+-16 g / +-2000 deg/s)",
+                       clipped[:-1] | clipped[1:])
+            r = rotation_matrix(xi_mid[:, 6], xi_mid[:, 7], xi_mid[:, 8])
+            f_b = _interval_specific_force(acc, u, u_mid, steps.keep_mask()[0])
+            tgt_mid = np.concatenate((np.einsum("nij,nj->ni", r, f_b) + np.array([0.0, 0.0, g]),
+                                      np.diff(gyro, axis=0) / np.diff(t)[:, None]), axis=1)
+            notes.append(
+                f"raw sensor targets (g = {g:g} m/s^2) over each 4 ms step, rows at step midpoints: the "
+                "gyro's difference over the step (its exact mean derivative there) and the accelerometer's "
+                "two ends averaged; regressors at the midpoint under the held command (motor lag ratio "
+                f"{ratio:.6f} per step, estimated from the log)"
+            )
+            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
     if targets == "truth":
         tgt[idx] = truth_targets(
             t[idx], vel[idx], rates[idx], dt=STEP_S, kinks=None if kinks is None else kinks[idx]
@@ -260,16 +283,53 @@ def read_tlog_dataset(
         tgt[idx] = st.values
         notes.append(f"sensor targets (g = {g:g} m/s^2): {st.describe(STEP_S)}")
         half = st.max_half_window
-        clipped = (np.abs(gyro) >= GYRO_LIMIT * (1 - 1e-6)).any(axis=1) | (
-            np.abs(acc) >= ACCEL_LIMIT * (1 - 1e-6)
-        ).any(axis=1)
-        filt.drop("IMU sample clamped in the window (+-16 g / +-2000 deg/s)", _dilate(clipped, half))
+        filt.drop("IMU sample clamped in the window (+-16 g / +-2000 deg/s)",
+                  _dilate(_clamped_imu(acc, gyro), half))
 
     if rate_hz is not None:
         filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
 
     state = np.concatenate((pos, vel, euler, rates), axis=1)
     return make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra)
+
+
+def _interval_filter(filt: RowFilter, times: np.ndarray, rate_hz: float | None, decimation: int) -> RowFilter:
+    """The filter of the N-1 step intervals between samples at times (us): an interval goes where either end
+    went, where it spans a missing step, and where decimation drops its start."""
+    steps = RowFilter(len(times) - 1)
+    for reason, bad in filt.reasons:
+        steps.drop(reason, bad[:-1] | bad[1:])
+    steps.drop("step interval over a missing step", np.diff(times) != round(STEP_S * 1e6))
+    if rate_hz is not None:
+        steps.drop(f"decimated to {rate_hz:g} Hz", (times[:-1] // 4000) % decimation != 0)
+    return steps
+
+
+def _interval_specific_force(
+    acc: np.ndarray, u: np.ndarray, u_mid: np.ndarray, keep: np.ndarray
+) -> np.ndarray:
+    """The accelerometer's mean over each step (N-1,3 m/s^2 FRD) from its samples at the ends (N,3): their
+    average, plus what the rotors' lag adds within the step. The thrust follows u_i^2, whose step mean (the
+    rows' RMS speeds u_mid, N-1,4 rad/s) is not the average of its ends; the specific force's change per
+    change of each rotor's u_i^2 is fitted over the steps `keep` (least squares of the samples' step changes
+    on the squared speeds' step changes) and carries that curvature over."""
+    sq = u**2
+    ends = 0.5 * (sq[:-1] + sq[1:])
+    change, rise = np.diff(acc, axis=0), np.diff(sq, axis=0)
+    ok = keep & np.isfinite(change).all(axis=1) & np.isfinite(rise).all(axis=1)
+    mean = 0.5 * (acc[:-1] + acc[1:])
+    if ok.sum() < 10 * rise.shape[1]:
+        return mean
+    design = np.column_stack((np.ones(int(ok.sum())), rise[ok]))
+    slope = np.linalg.lstsq(design, change[ok], rcond=None)[0][1:]
+    return mean + (u_mid**2 - ends) @ slope
+
+
+def _clamped_imu(acc: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+    """Samples (N,) where an IMU axis sits at the HIL encoder's clamp (+-16 g, +-2000 deg/s)."""
+    return (np.abs(gyro) >= GYRO_LIMIT * (1 - 1e-6)).any(axis=1) | (
+        np.abs(acc) >= ACCEL_LIMIT * (1 - 1e-6)
+    ).any(axis=1)
 
 
 def _dilate(mask: np.ndarray, half: int) -> np.ndarray:
