@@ -48,7 +48,7 @@ the training flight cannot pin down even given the true structure
 (least squares on every true term, t ratio below selection.min_t = 5, the t the engine's own pick demands;
 unidentifiable_terms) is counted apart ("not identifiable"): not missing when left out, not held to the
 coefficient floor; ours lists the ones it left out. With realistic sensors these are the terms below the
-noise (on fang-chen-aero: the per-rotor u_i*w terms of fx/fy, the w^2 terms of fz, the rate damping); with
+noise (on fang-chen-aero's paper-train flight: fz's w^2, vb*wz and wx*wz, wy''s wx^2 and wy^2); with
 ideal sensors there are none or next to none. Sensor cases: the reference adds the accelerometer's bias as
 the constants of fx fy fz (it is in the data), the targets add the vehicle's gravity (the g its
 accelerometer measures against), and every engine's model is scored in the weak form on the validation

@@ -293,10 +293,12 @@ class DiscoveryEngine:
                 continue
             pool += new
             ids = np.asarray(pool)
+            at = {int(i): k for k, i in enumerate(pool)}
             round_cands = self._sparsify(
                 [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
                 list(pool), lambda X_, js, ids=ids, cols=columns: cols(X_, ids[js]), y, loss, seen,
-                space_indices=ids, weights=weights)
+                space_indices=ids, weights=weights,
+                start=[at[int(i)] for i in model_terms if int(i) in at] if s.forward_from_pick else None)
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
@@ -447,18 +449,20 @@ class DiscoveryEngine:
         `polish_tries` as the sparse candidates are refit (least squares, then the absolute-error refit);
         every refit must pass the pick's identification rules (t ratio >= min_t, VIF <= max_vif).
         polish_rule "occam" (the default) and "tolerance": the pass also refits the best `polish_tries` swaps
-        that lower the model's complexity (a pool feature smaller than the term it replaces) and the best
-        `polish_tries` removals of one term (term_removals). "occam" decides by noise: each refit's pick-row
-        loss against the current model's as a paired t ratio (paired_loss_t: the rows' loss differences, the
-        standard error from `polish_blocks` contiguous blocks' means). A move better by more than `polish_z`
-        standard errors that adds no complexity is taken, the lowest loss first (with `polish_grow`, also one
-        that adds complexity when it beats the current model by the pick's tolerance as well); else the
-        simplest move that lowers the complexity, is not worse by more than `polish_z` standard errors and
-        stays within the pick's tolerance of the best loss seen (`limit`: the pick's limit over every
-        candidate so far, pareto.pick_limit); else the pass stops. "tolerance" uses the pick's rel_tol/abs_tol
-        in place of the standard errors (on noise-free targets rel_tol is no noise level: it let |wz| stand
-        for a small wz^2). So noise-level gains are never chained; what the polish returns, the pick weighs
-        as any candidate.
+        that lower the model's complexity (a pool feature smaller than the term it replaces), the best
+        `polish_tries` removals of one term (term_removals) and, with `polish_joins`, the best `polish_tries`
+        joins of two terms into one pool feature (term_merges: two stand-ins such as |vb| + vb^2 |vb| for a
+        true vb^2, where neither one-term swap is better while the other stays in). "occam" decides by noise:
+        each refit's pick-row loss against the current model's as a paired t ratio (paired_loss_t: the rows'
+        loss differences, the standard error from `polish_blocks` contiguous blocks' means). A move better by
+        more than `polish_z` standard errors that adds no complexity is taken, the lowest loss first (with
+        `polish_grow`, also one that adds complexity when it beats the current model by the pick's tolerance
+        as well); else the simplest move that lowers the complexity, is not worse by more than `polish_z`
+        standard errors and stays within the pick's tolerance of the best loss seen (`limit`: the pick's limit
+        over every candidate so far, pareto.pick_limit); else the pass stops. "tolerance" uses the pick's
+        rel_tol/abs_tol in place of the standard errors (on noise-free targets rel_tol is no noise level: it
+        let |wz| stand for a small wz^2). So noise-level gains are never chained; what the polish returns, the
+        pick weighs as any candidate.
         polish_rule "margin" (session 7): keeps the lowest-loss swap when it beats the current model's
         pick loss by more than 0.1 % (_better).
         At most `polish_passes` passes. Budgets are counts; deterministic (stable orders).
@@ -508,6 +512,13 @@ class DiscoveryEngine:
                 if len(terms) > 1:
                     for j, _rss in term_removals(M, y)[: s.polish_tries]:
                         moves.append([*terms[:j], *terms[j + 1:]])
+                # merges, the splits' inverse: two terms for one pool feature (|vb| + vb^2 |vb| standing for
+                # vb^2 on a noisy flight: neither swap alone is better, so the swaps never leave it)
+                if s.polish_joins and len(terms) > 2 and free:
+                    for j, k, f, _rss in term_merges(M, F[:, free], y)[: s.polish_tries]:
+                        shapes = [t for m, t in enumerate(terms) if m not in (j, k)] + [exprs[free[f]]]
+                        if shapes not in moves:
+                            moves.append(shapes)
             if not moves:
                 break
             n_single, n_split = len(singles), len(splits)
@@ -719,6 +730,7 @@ class DiscoveryEngine:
         space_indices: np.ndarray | None = None,
         engine: str | None = None,
         weights: np.ndarray | None = None,
+        start: list[int] | None = None,
     ) -> list[Candidate]:
         """Every new active set of the sparse paths over (1, pool columns) as a candidate.
 
@@ -726,14 +738,17 @@ class DiscoveryEngine:
         key; evaluate(X_, js) gives columns js (pool positions) on any rows X_ (N,16). seen: the active sets
         so far, as frozensets of keys with -1 for the constant. space_indices: the columns' indices in the
         feature space (recorded per candidate for the projected and the replacement screening), when they
-        are space features. weights: the paths' row weights (robust_weights)."""
+        are space features. weights: the paths' row weights (robust_weights). start: pool positions of the
+        last round's pick, from which one more forward path goes on (the path from no terms re-chooses every
+        term on noisy targets and may never reach that model plus the round's new features)."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
         lag = self._weak_lag()  # weak rows: the windows' overlap for the t ratios' effective rows
         problem = LeastSquaresProblem(theta, y, weights)
         exprs = [sympy.Integer(1), *exprs]
         feats = [Feature(f"x{k}", e, "const" if k == 0 else groups[k - 1]) for k, e in enumerate(exprs)]
         nodes = [complexity(e) for e in exprs]
-        sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes)
+        sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes,
+                                  None if not start else np.asarray(start, int) + 1)
         by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
         limit = self.settings.max_terms + 1  # + the constant
         for k, active in enumerate(sets):

@@ -96,6 +96,12 @@ class DiscoverySettings:
     rounds: int = 8  # at most this many screen -> sparsify -> residual rounds
     patience: int = 2  # stop after this many rounds in a row without a better held-out pick (0 acts as 1)
     max_terms: int = 20  # forward-selection path length in the sparsifier; larger models are not kept
+    # each round, one more forward path that starts from the last round's pick (its terms in the pool) and
+    # adds the pool's features to it (identification.sparse.forward_path initial=). Off: measured mixed
+    # (session 13): realistic-sensor fang-chen-aero 130/9/0 -> 131/8/4 (wy''s small terms found, fy's u_i wz
+    # taken as u_i^2 wz), closed-loop fang-chen-aero 132/11/0 -> 128/15/1 (a lower pick loss on wy' with the
+    # 1/h series holding what u_i wz holds), with the hub law 137/6/1 -> 139/4/2
+    forward_from_pick: bool = False
     thresholds: int = 12  # points of the sparsifier's STLSQ threshold sweep (at most sparse.thresholds)
     operon_population: int = 100  # genetic programming on the sparse model's residual, always run, for
     # `budget` generations (identify's --budget)
@@ -130,6 +136,10 @@ class DiscoverySettings:
     polish_split_width: int = 30
     # one more polish move: the model with its constant toggled (in <-> out), taken as a grow
     polish_constant: bool = True
+    # one more kind of polish move (occam rule): two of the model's terms joined into one pool feature
+    # (term_merges, the splits' inverse), taken as the simpler moves are: not worse by polish_z standard
+    # errors and within the pick's tolerance (realistic-sensor fang-chen-aero's wy': |vb| + vb^2 |vb| -> vb^2)
+    polish_joins: bool = True
     # merge repair (DiscoveryEngine._merge_repair): when the pick without the VIF rule (the t rule kept) is a
     # model the VIF rule sets aside, two of its terms merged into one feature of the space (the polish_tries
     # best merges by least squares, term_merges), kept when it passes the rules and is not worse than that

@@ -230,14 +230,17 @@ def backward_path(problem: LeastSquaresProblem, active: np.ndarray) -> list[np.n
 
 
 def forward_path(
-    problem: LeastSquaresProblem, usable: np.ndarray, max_terms: int, prune: float = 1e-3
+    problem: LeastSquaresProblem, usable: np.ndarray, max_terms: int, prune: float = 1e-3,
+    initial: np.ndarray | None = None,
 ) -> list[np.ndarray]:
     """Forward selection with pruning: add the term that lowers the residual most, then drop every earlier
     term whose removal raises the residual sum of squares by less than `prune` of it (a term made redundant
-    by a better one, e.g. v|v| once the body-drag terms are in); one active set per step."""
+    by a better one, e.g. v|v| once the body-drag terms are in); one active set per step, until max_terms
+    terms. initial: column indices to start from (a model found before) instead of none."""
     out = []
-    idx = np.zeros(0, dtype=int)
-    for _ in range(min(max_terms, int(usable.sum()))):
+    idx = np.zeros(0, dtype=int) if initial is None else np.asarray(initial, dtype=int)
+    idx = idx[usable[idx]]
+    for _ in range(min(max_terms - idx.size, int(usable.sum()) - idx.size)):
         pool = np.flatnonzero(usable & ~np.isin(np.arange(usable.size), idx))
         if pool.size == 0:
             break
@@ -284,8 +287,10 @@ def sparse_active_sets(
     progress: Progress | None = None,
     groups: Sequence[str] | None = None,
     nodes: Sequence[int] | None = None,
+    initial: np.ndarray | None = None,
 ) -> list:
-    """Unique active sets from the threshold sweep, the backward and the forward paths (and simpler swaps)."""
+    """Unique active sets from the threshold sweep, the backward and the forward paths (and simpler swaps);
+    initial: column indices of a model found before, from which a second forward path goes on."""
     start = problem.usable.copy()
     sets: dict[bytes, np.ndarray] = {}
     thresholds = np.geomspace(settings.threshold_min, settings.threshold_max, max(settings.thresholds, 1))
@@ -303,6 +308,9 @@ def sparse_active_sets(
             if groups is not None and nodes is not None and np.count_nonzero(a) <= settings.swap_max_terms:
                 for b in simpler_swaps(a, start, groups, nodes):
                     sets.setdefault(b.tobytes(), b)
+        if initial is not None and len(initial):
+            for a in forward_path(problem, start, settings.forward_terms, initial=initial):
+                sets.setdefault(a.tobytes(), a)
     return list(sets.values())
 
 

@@ -109,6 +109,28 @@ def test_polish_splits_a_stand_in_for_two_true_terms() -> None:
     assert results[0].has(sympy.Abs)  # one-term swaps alone do not leave the stand-in
 
 
+def _polished(X: np.ndarray, truth: sympy.Expr, shift: float, noise: float, terms: list[sympy.Expr],
+              settings: DiscoverySettings, rungs: int, constant: bool = True) -> sympy.Expr:
+    """The polish of the model `terms` (fitted to truth + shift + noise x its std on X's rows) over the pool
+    of the space's features up to `rungs`: the last accepted model's expression, or the start's."""
+    engine = DiscoveryEngine(settings)
+    space = engine.build_space(X)
+    columns = _Columns(space)
+    P = columns.primitives(X)
+    y = sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in space.primitives], truth)(*P.T)
+    y = y + shift + noise * np.std(y) * np.random.default_rng(0).normal(size=len(y))
+    Xt, yt, Xh, yh = split_holdout(X, y)
+    pick = engine._linear_candidate(terms, list(space.primitives), columns, Xt, yt, "absolute", None,
+                                    constant=constant)
+    attach_holdout([pick], Xh, yh, "absolute")
+    F = columns(Xt, np.arange(len(space)))
+    pool = [i for i in range(len(space)) if space.rungs[i] <= rungs]
+    shapes = {space.expressions[i] for i in pool}
+    assert all(t.as_coeff_Mul()[1] in shapes | set(terms) for t in sympy.Add.make_args(truth))
+    out = engine._polish(pick, pool, columns, F, yt, Xt, Xh, yh, "absolute", float(np.std(yh)))
+    return sympy.expand(out[-1].expression if out else pick.expression)
+
+
 def test_polish_adds_a_constant_the_model_left_out() -> None:
     """A sensor bias beside a large term: the pick without a constant gets it from the polish's toggle
     (polish_constant), and keeps its structure; with the toggle off it stays without."""
@@ -116,24 +138,26 @@ def test_polish_adds_a_constant_the_model_left_out() -> None:
     X = np.hstack([xi, u])
     wx, wy = (PRIMITIVE_SYMBOLS[n] for n in ("wx", "wy"))
     truth = 2.0 * wx * wy - 0.8 * wy
-    got = {}
-    for toggle in (True, False):
-        engine = DiscoveryEngine(DiscoverySettings(polish_passes=3, polish_constant=toggle))
-        space = engine.build_space(X)
-        columns = _Columns(space)
-        P = columns.primitives(X)
-        y = sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in space.primitives], truth)(*P.T)
-        y = y - 0.015 + 1e-3 * np.std(y) * np.random.default_rng(0).normal(size=len(y))
-        Xt, yt, Xh, yh = split_holdout(X, y)
-        pick = engine._linear_candidate([wx * wy, wy], list(space.primitives), columns, Xt, yt, "absolute",
-                                        None, constant=False)
-        attach_holdout([pick], Xh, yh, "absolute")
-        F = columns(Xt, np.arange(len(space)))
-        pool = [i for i in range(len(space)) if space.rungs[i] == 1]
-        out = engine._polish(pick, pool, columns, F, yt, Xt, Xh, yh, "absolute", float(np.std(yh)))
-        got[toggle] = sympy.expand(out[-1].expression if out else pick.expression)
+    got = {toggle: _polished(X, truth, -0.015, 1e-3, [wx * wy, wy],
+                             DiscoverySettings(polish_passes=3, polish_constant=toggle), 1, constant=False)
+           for toggle in (True, False)}
     constant = sum(t for t in sympy.Add.make_args(got[True]) if t.is_number)
     assert abs(float(constant) + 0.015) < 1e-3, got[True]
     assert set(got[True].free_symbols) == {wx, wy} and len(sympy.Add.make_args(got[True])) == 3, got[True]
     assert abs(float(got[True].coeff(wx * wy)) - 2.0) < 1e-2
     assert not any(t.is_number for t in sympy.Add.make_args(got[False])), got[False]
+
+
+def test_polish_joins_two_stand_ins_into_the_true_term() -> None:
+    """A model holding |vb| + vb^2 |vb| where the noisy data has vb^2: neither one-term swap is better by the
+    standard errors (each leaves the other stand-in in), so the swaps never leave it; a join (two terms for
+    one pool feature, term_merges) does, coefficients recovered. With polish_joins off the model stays."""
+    xi, u, _ = flight_rows(3000, 0, "fang-chen-buaa", Effects())
+    X = np.hstack([xi, u])
+    wx, wy, wz, vb = (PRIMITIVE_SYMBOLS[n] for n in ("wx", "wy", "wz", "vb"))
+    truth = 2.0 * wx * wz + 0.3 * vb**2 - 1.5 * wy
+    got = {joins: _polished(X, truth, 0.0, 0.05, [wx * wz, sympy.Abs(vb), vb**2 * sympy.Abs(vb), wy],
+                            DiscoverySettings(polish_passes=3, polish_joins=joins), 2)
+           for joins in (True, False)}
+    assert not got[True].has(sympy.Abs) and abs(float(got[True].coeff(vb**2)) - 0.3) < 3e-3, got[True]
+    assert got[False].has(sympy.Abs), got[False]

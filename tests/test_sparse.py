@@ -70,3 +70,34 @@ def test_threshold_sweep_gives_nested_sizes_and_a_constant_is_found():
     best = min(exact, key=lambda c: c.complexity)
     assert {str(k) for k in best.expression.expand().as_coefficients_dict()} == {"1", "wy*wz", "vz*Abs(vz)"}
     assert r2(y, best.evaluate(X)) == pytest.approx(1.0)
+
+
+def test_a_forward_path_goes_on_from_a_model_found_before():
+    """forward_path(initial=...): the path starts from the given columns and adds the best one at a time up to
+    max_terms in all; the greedy path from no terms, which re-chooses every term, stops at max_terms with
+    fewer of the true ones when correlated distractors lead it astray (here: each distractor the sum of two
+    true columns, which greedy takes first)."""
+    from identification.sparse import LeastSquaresProblem, forward_path, sparse_active_sets
+
+    rng = np.random.default_rng(3)
+    n, k = 2000, 8
+    true = rng.standard_normal((n, k))
+    coef = np.array([1.0, -0.8, 0.6, 0.9, -0.7, 0.5, 0.4, -0.3])
+    pairs = np.column_stack([true[:, i] + true[:, i + 1] + 0.3 * rng.standard_normal(n)
+                             for i in range(k - 1)])
+    theta = np.hstack([np.ones((n, 1)), true, pairs])
+    y = true @ coef + 0.01 * rng.standard_normal(n)
+    problem = LeastSquaresProblem(theta, y)
+    usable = problem.usable.copy()
+    want = set(range(1, k + 1))
+    initial = np.array([1, 2, 3, 4, 5, 6])
+    path = forward_path(problem, usable, k, initial=initial)
+    assert set(np.flatnonzero(path[0])) >= set(initial) and np.count_nonzero(path[0]) == len(initial) + 1
+    assert set(np.flatnonzero(path[-1])) == want  # the two missing true columns, not a distractor
+    assert all(np.count_nonzero(a) <= k for a in path)
+    cold = forward_path(problem, usable, k)
+    assert set(np.flatnonzero(cold[-1])) != want
+    settings = SparseSettings(thresholds=3, backward=False, forward_terms=k, swap_max_terms=0)
+    warm = sparse_active_sets(problem, settings, initial=initial)
+    assert any(set(np.flatnonzero(a)) == want for a in warm)
+    assert not any(set(np.flatnonzero(a)) == want for a in sparse_active_sets(problem, settings))
