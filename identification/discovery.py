@@ -298,7 +298,8 @@ class DiscoveryEngine:
                 [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
                 list(pool), lambda X_, js, ids=ids, cols=columns: cols(X_, ids[js]), y, loss, seen,
                 space_indices=ids, weights=weights,
-                start=[at[int(i)] for i in model_terms if int(i) in at] if s.forward_from_pick else None)
+                start=[at[int(i)] for i in model_terms if int(i) in at] if s.forward_from_pick else None,
+                addable=~space.height_features()[ids])
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
@@ -731,6 +732,7 @@ class DiscoveryEngine:
         engine: str | None = None,
         weights: np.ndarray | None = None,
         start: list[int] | None = None,
+        addable: np.ndarray | None = None,
     ) -> list[Candidate]:
         """Every new active set of the sparse paths over (1, pool columns) as a candidate.
 
@@ -740,7 +742,8 @@ class DiscoveryEngine:
         feature space (recorded per candidate for the projected and the replacement screening), when they
         are space features. weights: the paths' row weights (robust_weights). start: pool positions of the
         last round's pick, from which one more forward path goes on (the path from no terms re-chooses every
-        term on noisy targets and may never reach that model plus the round's new features)."""
+        term on noisy targets and may never reach that model plus the round's new features), adding only the
+        pool columns `addable` (bool per pool column; None: any)."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
         lag = self._weak_lag()  # weak rows: the windows' overlap for the t ratios' effective rows
         problem = LeastSquaresProblem(theta, y, weights)
@@ -748,7 +751,8 @@ class DiscoveryEngine:
         feats = [Feature(f"x{k}", e, "const" if k == 0 else groups[k - 1]) for k, e in enumerate(exprs)]
         nodes = [complexity(e) for e in exprs]
         sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes,
-                                  None if not start else np.asarray(start, int) + 1)
+                                  None if not start else np.asarray(start, int) + 1,
+                                  None if addable is None else np.concatenate(([True], addable)))
         by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
         limit = self.settings.max_terms + 1  # + the constant
         for k, active in enumerate(sets):

@@ -288,9 +288,11 @@ def sparse_active_sets(
     groups: Sequence[str] | None = None,
     nodes: Sequence[int] | None = None,
     initial: np.ndarray | None = None,
+    addable: np.ndarray | None = None,
 ) -> list:
     """Unique active sets from the threshold sweep, the backward and the forward paths (and simpler swaps);
-    initial: column indices of a model found before, from which a second forward path goes on."""
+    initial: column indices of a model found before, from which a second forward path goes on, adding only
+    the columns `addable` (bool per column; None: any)."""
     start = problem.usable.copy()
     sets: dict[bytes, np.ndarray] = {}
     thresholds = np.geomspace(settings.threshold_min, settings.threshold_max, max(settings.thresholds, 1))
@@ -309,7 +311,9 @@ def sparse_active_sets(
                 for b in simpler_swaps(a, start, groups, nodes):
                     sets.setdefault(b.tobytes(), b)
         if initial is not None and len(initial):
-            for a in forward_path(problem, start, settings.forward_terms, initial=initial):
+            grow = start.copy() if addable is None else start & addable
+            grow[initial] = start[initial]
+            for a in forward_path(problem, grow, settings.forward_terms, initial=initial):
                 sets.setdefault(a.tobytes(), a)
     return list(sets.values())
 

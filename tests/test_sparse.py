@@ -76,7 +76,7 @@ def test_a_forward_path_goes_on_from_a_model_found_before():
     """forward_path(initial=...): the path starts from the given columns and adds the best one at a time up to
     max_terms in all; the greedy path from no terms, which re-chooses every term, stops at max_terms with
     fewer of the true ones when correlated distractors lead it astray (here: each distractor the sum of two
-    true columns, which greedy takes first)."""
+    true columns, which greedy takes first). sparse_active_sets(addable=...) limits what that path adds."""
     from identification.sparse import LeastSquaresProblem, forward_path, sparse_active_sets
 
     rng = np.random.default_rng(3)
@@ -101,3 +101,8 @@ def test_a_forward_path_goes_on_from_a_model_found_before():
     warm = sparse_active_sets(problem, settings, initial=initial)
     assert any(set(np.flatnonzero(a)) == want for a in warm)
     assert not any(set(np.flatnonzero(a)) == want for a in sparse_active_sets(problem, settings))
+    # the path from the model adds only the columns it may add (the engine: no height feature)
+    addable = np.ones(theta.shape[1], bool)
+    addable[k] = False  # the last true column
+    limited = sparse_active_sets(problem, settings, initial=initial, addable=addable)
+    assert not any(set(np.flatnonzero(a)) == want for a in limited)
