@@ -513,7 +513,7 @@ class DiscoveryEngine:
                 if len(terms) > 1:
                     for j, _rss in term_removals(M, y)[: s.polish_tries]:
                         moves.append([*terms[:j], *terms[j + 1:]])
-                # merges, the splits' inverse: two terms for one pool feature (|vb| + vb^2 |vb| standing for
+                # joins, the splits' inverse: two terms for one pool feature (|vb| + vb^2 |vb| standing for
                 # vb^2 on a noisy flight: neither swap alone is better, so the swaps never leave it)
                 if s.polish_joins and len(terms) > 2 and free:
                     for j, k, f, _rss in term_merges(M, F[:, free], y)[: s.polish_tries]:

@@ -264,8 +264,9 @@ def read_tlog_dataset(
             notes.append(
                 f"raw sensor targets (g = {g:g} m/s^2) over each 4 ms step, rows at step midpoints: the "
                 "gyro's difference over the step (its exact mean derivative there) and the accelerometer's "
-                "two ends averaged; regressors at the midpoint under the held command (motor lag ratio "
-                f"{ratio:.6f} per step, estimated from the log)"
+                "mean over it (its ends averaged plus the rotors' lag within the step); regressors at the "
+                f"midpoint under the held command (motor lag ratio {ratio:.6f} per step, estimated from the "
+                "log)"
             )
             return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
     if targets == "truth":
