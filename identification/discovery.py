@@ -252,6 +252,7 @@ class DiscoveryEngine:
         best: Candidate | None = None
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
         off = np.zeros(len(space), bool)  # features out of the screening (the height series once a law is in)
+        heights = space.height_features()  # what the forward path from the pick never adds
         # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
@@ -269,7 +270,7 @@ class DiscoveryEngine:
                     space, law, columns = added
                     F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
                     Z = np.hstack([Z, _standardized(F[:, [law]])])
-                    off = space.height_features()
+                    off = heights = space.height_features()
                     pool = [i for i in pool if not off[i]] + basis.add_first(F, [law])
                     swaps = [i for i in swaps if not off[i]]
                     law_now = law in pool
@@ -294,12 +295,12 @@ class DiscoveryEngine:
             pool += new
             ids = np.asarray(pool)
             at = {int(i): k for k, i in enumerate(pool)}
+            start_at = [at[int(i)] for i in model_terms if int(i) in at] if s.forward_from_pick else None
             round_cands = self._sparsify(
                 [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
                 list(pool), lambda X_, js, ids=ids, cols=columns: cols(X_, ids[js]), y, loss, seen,
-                space_indices=ids, weights=weights,
-                start=[at[int(i)] for i in model_terms if int(i) in at] if s.forward_from_pick else None,
-                addable=~space.height_features()[ids])
+                space_indices=ids, weights=weights, start=start_at,
+                addable=None if start_at is None else ~heights[ids])
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, _SELECTION, scale=scale)
@@ -937,6 +938,8 @@ _LAST_HUB: dict[str, np.ndarray] = {}  # the last training data's fitted hub off
 def _rows_key(X: np.ndarray) -> str:
     """A digest of a training flight's rows (what the space and the hub offsets are cached under)."""
     return hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest()
+
+
 # the residual's model between rounds: identify's held-out pick without its identification rules (t ratio,
 # VIF). A round's models are incomplete: their residual is the physics still to find, smooth, so its
 # effective sample size is tens of rows and every t ratio is small; which few pass is chance (with t ratios

@@ -223,6 +223,7 @@ def read_tlog_dataset(
     no_sensor = len(state_times - set(rows))
     if no_sensor:
         extra["step without HIL_SENSOR"] = no_sensor
+    g = STANDARD_GRAVITY if gravity is None else float(gravity)  # m/s^2, what the targets add back
     throttles = _held_throttles(times, commands) if commands else None
     kinks = _command_kinks(times, commands)
     crossing = None if kinks is None else _dilate(kinks, STENCIL_HALF - 1)  # a change inside the span
@@ -235,9 +236,7 @@ def read_tlog_dataset(
                 "7-point point derivatives (6th order); rows whose stencil would cross a change dropped"
             )
         if ratio is not None:
-            g_true = STANDARD_GRAVITY if gravity is None else float(gravity)
-            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g_true,
-                                                               notes)
+            t_mid, xi_mid, u_mid, tgt_mid = step_interval_rows(t, pos, vel, quat, rates, u, ratio, g, notes)
             steps = _interval_filter(filt, times, rate_hz, decimation)
             notes.append(
                 "truth targets: exact mean accelerations over each 4 ms step, rows at step midpoints "
@@ -251,7 +250,6 @@ def read_tlog_dataset(
     if targets == "sensors" and raw_steps and rotor is None and throttles is not None and step_intervals:
         ratio = motor_lag_ratio(u, throttles, usable)
         if ratio is not None:
-            g = STANDARD_GRAVITY if gravity is None else float(gravity)
             t_mid, xi_mid, u_mid, _ = step_interval_rows(t, pos, vel, quat, rates, u, ratio)
             steps = _interval_filter(filt, times, rate_hz, decimation)
             clipped = _clamped_imu(acc, gyro)
@@ -277,7 +275,6 @@ def read_tlog_dataset(
             filt.drop(f"truth target: a command change within {STENCIL_HALF - 1} steps (the 7-point stencil "
                       "would cross the motor lag's restart)", crossing)
     else:
-        g = STANDARD_GRAVITY if gravity is None else float(gravity)
         st = sensor_targets(
             t[idx], acc[idx], gyro[idx], euler[idx], gravity=g, settings=sensor_settings, dt=STEP_S
         )
