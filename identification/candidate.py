@@ -38,6 +38,16 @@ class Candidate:
     # None: not measured; the error only for a positive slope
     self_feedback: float | None = None
     self_feedback_se: float | None = None
+    # () -> (weakest_t, largest_vif), run once when the pick first asks (measured()): most of an engine's
+    # candidates are never near the pick, and each measure is a pass over the fit rows
+    measure: Callable[[], tuple[float, float]] | None = field(default=None, repr=False, compare=False)
+
+    def measured(self) -> Candidate:
+        """The candidate with weakest_t and largest_vif set (its deferred measure run, once)."""
+        if self.measure is not None:
+            self.weakest_t, self.largest_vif = self.measure()
+            self.measure = None
+        return self
 
     def evaluate(self, X: np.ndarray) -> np.ndarray:
         """The candidate's prediction on X (N,16), in the target's unit."""

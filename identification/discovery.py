@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import itertools
 import time
 import warnings
 from collections.abc import Callable, Sequence
@@ -253,6 +254,7 @@ class DiscoveryEngine:
         stale = 0  # rounds in a row whose pick is no better on the held-out rows
         off = np.zeros(len(space), bool)  # features out of the screening (the height series once a law is in)
         heights = space.height_features()  # what the forward path from the pick never adds
+        zf: tuple | None = None  # (Z, its NaN-free copy, column sums of squares, usable columns)
         # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
@@ -276,7 +278,11 @@ class DiscoveryEngine:
                     law_now = law in pool
             model_terms = self._features.get(id(best), np.zeros(0, int))
             model_cols = F[:, model_terms]
-            scores = _projected_scores(Z, residual if weights is None else weights * residual, model_cols)
+            if zf is None or zf[0] is not Z:  # Z's NaN-free copy and column sums, once per space
+                zf = (Z, np.nan_to_num(Z, nan=0.0))
+                zf += (np.sum(zf[1] * zf[1], axis=0), np.all(np.isfinite(Z[:1]), axis=0))
+            scores = _projected_scores(Z, residual if weights is None else weights * residual, model_cols,
+                                       prepared=zf[1:])
             scores[off] = -np.inf
             new = basis.add_first(F, swaps)  # replacement screening first
             # a proposed swap that is a combination of pool features takes the place of one of them
@@ -490,7 +496,8 @@ class DiscoveryEngine:
         heights = columns.space.height_features() if s.polish_split_width >= 2 else np.zeros(len(exprs), bool)
         for _ in range(s.polish_passes):
             M = self._term_columns(terms, columns, X)
-            free = [i for i in pool if exprs[i] not in terms]
+            held = set(terms)
+            free = [i for i in pool if exprs[i] not in held]
             parts = _swap_parts(M, F[:, free], y) if free else None  # one projection: swaps and splits
             ranked = _ranked_cells(parts[0]) if parts is not None else []
             singles = [[*terms[:j], exprs[free[f]], *terms[j + 1:]]
@@ -656,9 +663,10 @@ class DiscoveryEngine:
         reference = self._pick_rows(start.evaluate(Xh))
         limit = within_tolerance(float(start.holdout_loss), sel, scale)
         M = self._term_columns(terms, columns, X)
-        ranked = [(j, k, f) for j, k, f, _rss in term_merges(M, F, y) if exprs[f] not in terms]
+        held = set(terms)  # hashed: the ranking holds every (pair, feature) cell of the space
+        ranked = ((j, k, f) for j, k, f, _rss in term_merges(M, F, y) if exprs[f] not in held)
         moves = [[t for m, t in enumerate(terms) if m not in (j, k)] + [exprs[f]]
-                 for j, k, f in ranked[: s.polish_tries]]
+                 for j, k, f in itertools.islice(ranked, s.polish_tries)]
         passing = [c for c in self._refit_moves(moves, columns, X, y, Xh, yh, loss, constant)
                    if c.holdout_loss <= limit
                    and paired_loss_t(yv, self._pick_rows(c.evaluate(Xh)), reference, loss,
@@ -791,7 +799,7 @@ class DiscoveryEngine:
                     predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
                 )
             )
-            out[-1].weakest_t, out[-1].largest_vif = term_identification(theta[:, idx], y, lag)
+            out[-1].measure = functools.partial(_measure_terms, theta, idx, y, lag)
             if space_indices is not None:
                 self._features[id(out[-1])] = space_indices[js]
         return out
@@ -935,6 +943,12 @@ _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and m
 _LAST_HUB: dict[str, np.ndarray] = {}  # the last training data's fitted hub offsets (4, 3) m (one entry)
 
 
+def _measure_terms(theta: np.ndarray, idx: np.ndarray, y: np.ndarray, lag: int | None) -> tuple[float, float]:
+    """(weakest t ratio, largest VIF) of the columns idx of theta (N,p) fitting y (N,): a sparse candidate's
+    deferred measure (Candidate.measure)."""
+    return term_identification(theta[:, idx], y, lag)
+
+
 def _rows_key(X: np.ndarray) -> str:
     """A digest of a training flight's rows (what the space and the hub offsets are cached under)."""
     return hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest()
@@ -1047,13 +1061,16 @@ def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(scores), scores, -np.inf)
 
 
-def _projected_scores(Z: np.ndarray, r: np.ndarray, model: np.ndarray, floor: float = 1e-5) -> np.ndarray:
+def _projected_scores(
+    Z: np.ndarray, r: np.ndarray, model: np.ndarray, floor: float = 1e-5, prepared: tuple | None = None
+) -> np.ndarray:
     """|correlation| of each standardized column of Z (N,M) with the residual r (N,), both taken orthogonal
     to the current model's columns `model` (N,k) and the constant: what each feature adds to the model
     against what the model leaves unexplained (orthogonal matching pursuit's criterion). Plain screening
     ranks a feature nearly collinear with a model term (wz*(u1+..+u4) beside wz when the rotor sum varies
     by 5 %) by the part the model already explains, so the residual it would remove never brings it in.
-    -inf where a column is unusable or adds less than `floor` of its own spread (numerically in the span)."""
+    -inf where a column is unusable or adds less than `floor` of its own spread (numerically in the span).
+    prepared: (Z with NaN as 0, its columns' sums of squares, its usable columns), computed here if None."""
     if model.shape[1] == 0:
         return _screen_scores(Z, r)
     basis = np.hstack([np.ones((len(r), 1)), model])
@@ -1062,11 +1079,14 @@ def _projected_scores(Z: np.ndarray, r: np.ndarray, model: np.ndarray, floor: fl
     q = q[:, np.abs(np.diag(rr)) > 1e-10 * max(float(np.abs(np.diag(rr)).max()), 1e-300)]
     r_perp = r - q @ (q.T @ r)
     rs = float(np.linalg.norm(r_perp))
-    with np.errstate(all="ignore"):
+    if prepared is None:
         Zf = np.nan_to_num(Z, nan=0.0)
+        prepared = (Zf, np.sum(Zf * Zf, axis=0), np.all(np.isfinite(Z[:1]), axis=0))
+    Zf, zz, finite = prepared
+    with np.errstate(all="ignore"):
         along = q.T @ Zf
-        perp2 = np.sum(Zf * Zf, axis=0) - np.sum(along * along, axis=0)
-        usable = np.all(np.isfinite(Z[:1]), axis=0) & (perp2 > (floor**2) * len(r))
+        perp2 = zz - np.sum(along * along, axis=0)
+        usable = finite & (perp2 > (floor**2) * len(r))
         scores = np.abs(r_perp @ Zf) / ((rs if rs > 0 else 1.0) * np.sqrt(np.where(usable, perp2, 1.0)))
     return np.where(usable & np.isfinite(scores), scores, -np.inf)
 

@@ -31,7 +31,7 @@ says so.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -86,10 +86,10 @@ def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: 
     finite = [(c, s) for c, s in scored if math.isfinite(s)]
     if not finite:
         return min(candidates, key=lambda c: c.complexity)
-    finite = _passing(finite, settings)
-    limit = within_tolerance(min(s for _, s in finite), settings, scale)
-    ok = [(c, s) for c, s in finite if s <= limit]
-    return min(ok, key=lambda cs: (cs[0].complexity, cs[1]))[0]
+    rule, best = _passing_rule(finite, settings)
+    limit = within_tolerance(best, settings, scale)
+    ok = sorted(((c, s) for c, s in finite if s <= limit), key=lambda cs: (cs[0].complexity, cs[1]))
+    return next(c for c, _ in ok if rule(c))
 
 
 def within_tolerance(best: float, settings: SelectionSettings, scale: float = 1.0) -> float:
@@ -104,14 +104,23 @@ def pick_limit(candidates: Sequence[Candidate], settings: SelectionSettings, sca
     finite = [(c, s) for c in candidates if math.isfinite(s := _score(c))]
     if not finite:
         return float("inf")
-    return within_tolerance(min(s for _, s in _passing(finite, settings)), settings, scale)
+    return within_tolerance(_passing_rule(finite, settings)[1], settings, scale)
 
 
-def _passing(scored: list[tuple[Candidate, float]], settings: SelectionSettings) -> list:
-    """The scored candidates the pick compares: identified and without anti-damping; else without
-    anti-damping; else all (module docstring)."""
-    calm = [cs for cs in scored if not anti_damping(cs[0], settings)]
-    return [cs for cs in calm if _identified(cs[0], settings)] or calm or scored
+def _passing_rule(
+    scored: list[tuple[Candidate, float]], settings: SelectionSettings
+) -> tuple[Callable[[Candidate], bool], float]:
+    """The rule the pick compares candidates by (identified and without anti-damping; else without
+    anti-damping; else none: module docstring) and the lowest score among those it passes. The candidates
+    are tried lowest score first, so only those the answer depends on are measured (Candidate.measured)."""
+    ranked = sorted(scored, key=lambda cs: cs[1])
+    rules: list[Callable[[Candidate], bool]] = [
+        lambda c: admissible(c, settings), lambda c: not anti_damping(c, settings), lambda c: True]
+    for rule in rules:
+        best = next((s for c, s in ranked if rule(c)), None)
+        if best is not None:
+            return rule, best
+    raise ValueError("no candidates to choose from")
 
 
 def anti_damping(c: Candidate, settings: SelectionSettings) -> bool:
@@ -130,13 +139,14 @@ def admissible(c: Candidate, settings: SelectionSettings) -> bool:
 def excited(candidates: Sequence[Candidate], constant_loss: float, settings: SelectionSettings) -> bool:
     """False when no candidate passing the pick's rules (identified, no anti-damping) has a pick loss below
     constant_loss (the constant model's on the pick rows) by min_gain of it (module docstring)."""
-    rules = [c for c in candidates if admissible(c, settings)]
-    best = min((_score(c) for c in rules), default=float("inf"))
+    ranked = sorted(candidates, key=_score)
+    best = next((_score(c) for c in ranked if admissible(c, settings)), float("inf"))
     return bool(best < constant_loss * (1.0 - settings.min_gain))
 
 
 def _identified(c: Candidate, settings: SelectionSettings) -> bool:
     """False when the fit rows do not identify the candidate's terms (module docstring)."""
+    c.measured()
     t_ok = c.weakest_t is None or c.weakest_t >= settings.min_t
     return t_ok and (c.largest_vif is None or c.largest_vif <= settings.max_vif)
 

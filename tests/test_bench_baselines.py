@@ -70,3 +70,18 @@ def test_the_settings_state_the_libraries_and_pyoperons_budget():
     assert "153 columns" in lines[0]
     assert "20 generations per target" in lines[1] and "10,000 individuals" in lines[1]
     assert "seed 7" in lines[1]
+
+
+def test_the_validation_flight_option_gives_the_whole_training_flight_to_fit_and_pick():
+    # --validation-flight: ours validates on the case's other flight (as `quadsr identify --validate-log`),
+    # so no block of the training flight is set aside; without it, identify's fit | pick | validate blocks
+    case = next(c for c in discovery.CASES if c.name == "paper vehicle")
+    train, val = discovery.synthetic(case, 1500, 0), discovery.synthetic(case, 600, 1000)
+    gravity = 9.81
+    given = discovery.fit("sparse", train, 0, gravity, 1, 1, validate=val)
+    blocks = discovery.fit("sparse", train, 0, gravity, 1, 1)
+    rows_given = given.engine["rows"]
+    rows_blocks = blocks.engine["rows"]
+    assert rows_given["validate"] == len(val)
+    assert rows_given["fit"] + rows_given["pick"] > rows_blocks["fit"] + rows_blocks["pick"] + 250
+    assert rows_blocks["validate"] < len(train) // 4

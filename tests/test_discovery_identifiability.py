@@ -113,7 +113,7 @@ def test_a_genetic_programming_product_comes_back_as_its_terms_refit_and_pruned(
     assert best.engine.endswith("(+operon)")
     _assert_terms(best.expression, sympy.expand(truth))
     gp = [c for c in cands if c.engine.endswith("(+operon)")]
-    assert gp and all(c.weakest_t is not None for c in gp)  # linear in their terms: t ratios measured
+    assert gp and all(c.measured().weakest_t is not None for c in gp)  # linear in their terms: t measured
     assert all(abs(float(t.as_coeff_Mul()[0])) > 0 for t in sympy.Add.make_args(best.expression))
 
 

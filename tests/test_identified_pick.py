@@ -99,3 +99,29 @@ def test_term_t_ratios_name_the_term_below_the_noise():
     assert t[1] > 100 and t[2] > 100 and t[3] < 5
     assert np.allclose(vif[1:], 1.0, atol=0.01)
     assert term_identification(cols, y)[0] == pytest.approx(t[3])
+
+
+def test_the_pick_measures_only_the_candidates_its_answer_depends_on():
+    # an engine's candidates defer their t ratio and VIF (Candidate.measure: a pass over the fit rows each);
+    # the pick tries them lowest loss first, so it measures a few and picks what measuring all would pick
+    rng = np.random.default_rng(5)
+    settings = SelectionSettings()
+    specs = [(int(rng.integers(3, 40)), float(rng.uniform(0.01, 0.05)), float(rng.choice([0.5, 50.0])))
+             for _ in range(200)]
+    calls: list[int] = []
+
+    def deferred(k: int, t: float) -> Candidate:
+        c = _candidate(specs[k][0], specs[k][1], None)
+        c.measure = lambda: (calls.append(k), (t, 2.0))[1]
+        return c
+
+    lazy = [deferred(k, t) for k, (_, _, t) in enumerate(specs)]
+    eager = [_candidate(size, loss, t) for size, loss, t in specs]
+    for c in eager:
+        c.largest_vif = 2.0
+    picked = select(lazy, settings)
+    assert lazy.index(picked) == eager.index(select(eager, settings))
+    assert picked.weakest_t >= settings.min_t and picked.measure is None
+    assert 0 < len(calls) < 50 and len(set(calls)) == len(calls)  # each measured at most once
+    select(lazy, settings)
+    assert len(set(calls)) == len(calls)
