@@ -41,13 +41,12 @@ def replacements(
     blocked[terms] = True
     out: list[int] = []
     yw = y * sw
-    usable = [j for j in terms if np.all(np.isfinite(Z[:, j]))]
-    with np.errstate(all="ignore"):  # one pass over Z for every term's correlations (Z is large)
-        corrs = np.abs(np.nan_to_num(Z.T @ Z[:, usable], nan=0.0)) / len(y) if usable else None
     for j in terms:
-        if j not in usable:
+        zj = Z[:, j]
+        if not np.all(np.isfinite(zj)):
             continue
-        corr = corrs[:, usable.index(j)]
+        with np.errstate(all="ignore"):
+            corr = np.abs(np.nan_to_num(Z.T @ zj, nan=0.0)) / len(zj)
         corr[blocked] = -1.0
         near = [int(k) for k in np.argsort(-corr, kind="stable")[:nearest] if corr[k] > 0.0]
         if not near:
