@@ -95,6 +95,9 @@ def check_settings(settings: DiscoverySettings) -> None:
                         f"{settings.polish_passes} and {settings.polish_tries}", hint="polish_passes 0: off")
     if not settings.primitives:
         raise UserError("discovery settings: no primitives", hint=f"choose from {', '.join(PRIMITIVES)}")
+    if settings.operon_rows < 0:
+        raise UserError(f"discovery settings: key 'operon_rows' must be >= 0, got {settings.operon_rows}",
+                        hint="0: the GP reads every fit row")
     if settings.hub_law_fits < 0 or settings.hub_law_powers < 1 or settings.hub_law_evaluations < 1:
         raise UserError("discovery settings: keys 'hub_law_fits' >= 0, 'hub_law_powers' >= 1 and "
                         f"'hub_law_evaluations' >= 1, got {settings.hub_law_fits}, "
@@ -837,8 +840,10 @@ class DiscoveryEngine:
         mapping.update({f"s{k}": e for k, e in enumerate(seeds)})
         seed_fn = _lambdify(prims, seeds)
         P = columns.primitives(X)
-        inputs = np.hstack([P[:, own], seed_fn(P)]) if seeds else P[:, own]
-        residual = y - best.evaluate(X)
+        rows = gp_rows(len(X), s.operon_rows)
+        Pg = P[rows]
+        inputs = np.hstack([Pg[:, own], seed_fn(Pg)]) if seeds else Pg[:, own]
+        residual = y[rows] - best.evaluate(X[rows])
         reg = SymbolicRegressor(
             allowed_symbols="add,sub,mul,div,constant,variable",
             objectives=["r2", "length"],
@@ -941,6 +946,13 @@ class DiscoveryEngine:
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
 _LAST_HUB: dict[str, np.ndarray] = {}  # the last training data's fitted hub offsets (4, 3) m (one entry)
+
+
+def gp_rows(n: int, limit: int) -> np.ndarray:
+    """Indices of at most `limit` of n rows, evenly strided from the first (all n when limit is 0 or >= n)."""
+    if limit <= 0 or n <= limit:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, limit).round().astype(int))
 
 
 def _measure_terms(theta: np.ndarray, idx: np.ndarray, y: np.ndarray, lag: int | None) -> tuple[float, float]:

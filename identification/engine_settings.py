@@ -110,6 +110,12 @@ class DiscoverySettings:
     operon_max_length: int = 15
     operon_optimizer_iterations: int = 5
     operon_threads: int = 1
+    # the GP proposes shapes (its expressions come back as terms refit on every fit row), so it may read only
+    # this many fit rows, evenly strided over the flight; 0 (the default): every fit row. Its cost is per
+    # row. Measured with 4096 (session 14, bench/settings/gp-rows.yaml): CPU -18 to -40 % on the SITL cases
+    # (closed-loop fang-chen-aero 101 -> 83 s), every case's structure the same but two already failing
+    # (closed-loop aero 132/11/0 -> 132/11/1, realistic-sensor aero weak 132/7/4 -> 132/7/6): off by default
+    operon_rows: int = 0
     # term-substitution polish of the pick (identification.discovery DiscoveryEngine._polish): at most this
     # many passes, each refitting the best polish_tries single-term swaps (ranked by least squares); 0: off.
     # With session 7's rule ("margin") it fixed sitl fang-chen-aero's structure (139/0/0) but took noise-level

@@ -99,17 +99,29 @@ def test_a_height_that_barely_varies_gives_no_features_and_the_simpler_term_wins
     assert {"h", "1/h"} <= {str(e) for e in space.expressions}
 
 
+def _gp_product_pick(operon_rows: int):
+    truth = -2e-4 * P["ub"] * (P["u1"] + P["u2"] + P["u3"] + P["u4"]) + 0.05 * P["ub"] * P["wx"] * P["wz"]
+    X = _rows(2000, 5, spread=0.5)
+    Xt, yt, Xh, yh = split_holdout(X, _values(truth, X))
+    engine = DiscoveryEngine(DiscoverySettings(rounds=3, operon_population=100, operon_rows=operon_rows))
+    cands = engine.fit(Xt, yt, "fx", 20, 0, "absolute", None, (Xh, yh))
+    attach_holdout(cands, Xh, yh, "absolute")
+    return truth, cands, select(cands, SelectionSettings(), float(np.std(yh)))
+
+
+def test_the_gp_reads_a_strided_subset_of_the_fit_rows_and_its_terms_are_refit_on_all():
+    # operon_rows: the GP proposes the product from 400 of the 1,600 fit rows; its terms, refit by least
+    # squares on every fit row, give the exact coefficients
+    truth, _, best = _gp_product_pick(400)
+    assert best.engine.endswith("(+operon)")
+    _assert_terms(best.expression, sympy.expand(truth))
+
+
 def test_a_genetic_programming_product_comes_back_as_its_terms_refit_and_pruned():
     # ub*wx*wz is a product of three primitives: no rung-2 feature holds it, the GP on the sparse model's
     # residual finds it; its terms then join the picked model's features in one more sparse fit, so the pick
     # is the exact sum of the true terms with least-squares coefficients, not "model + opaque GP tree"
-    truth = -2e-4 * P["ub"] * (P["u1"] + P["u2"] + P["u3"] + P["u4"]) + 0.05 * P["ub"] * P["wx"] * P["wz"]
-    X = _rows(2000, 5, spread=0.5)
-    Xt, yt, Xh, yh = split_holdout(X, _values(truth, X))
-    engine = DiscoveryEngine(DiscoverySettings(rounds=3, operon_population=100))
-    cands = engine.fit(Xt, yt, "fx", 20, 0, "absolute", None, (Xh, yh))
-    attach_holdout(cands, Xh, yh, "absolute")
-    best = select(cands, SelectionSettings(), float(np.std(yh)))
+    truth, cands, best = _gp_product_pick(0)
     assert best.engine.endswith("(+operon)")
     _assert_terms(best.expression, sympy.expand(truth))
     gp = [c for c in cands if c.engine.endswith("(+operon)")]

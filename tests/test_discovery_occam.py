@@ -182,3 +182,12 @@ def test_polish_rule_is_validated(tmp_path) -> None:
     path.write_text("discovery:\n  polish_rule: 3\n")
     with pytest.raises(UserError):
         load_engine_settings(path)
+
+
+def test_operon_rows_is_validated_and_read_from_yaml(tmp_path) -> None:
+    """A negative operon_rows (the GP's fit-row budget) is a UserError; YAML sets it (0: every row)."""
+    with pytest.raises(UserError, match="operon_rows"):
+        check_settings(DiscoverySettings(operon_rows=-1))
+    path = tmp_path / "s.yaml"
+    path.write_text("discovery:\n  operon_rows: 0\n")
+    assert load_engine_settings(path).discovery.operon_rows == 0
