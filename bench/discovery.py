@@ -357,27 +357,28 @@ def ols_three_terms(train: Dataset) -> Model:
 
 def fit(engine: str, train: Dataset, seed: int, gravity: float, budget: int,
         operon_generations: int, settings: EngineSettings | None = None,
-        validate: Dataset | None = None) -> Model:
+        validate: Dataset | None = None, pick_blocks: int = 1) -> Model:
     """One engine's model of the six targets from the training flight (budget: GP generations).
 
     validate: the case's validation flight (--validation-flight), given to the engines that hold rows out
     (ours, `sparse`, pyoperon alone through identify) as their validation role, as a user with two flights
     gives it (`quadsr identify --validate-log`): the training flight is then fit and pick rows only, no
     block of it set aside to validate; None: identify's default blocks (fit | pick | validate) of the
-    training flight (the baselines fit on the whole training flight either way).
+    training flight (the baselines fit on the whole training flight either way). pick_blocks: identify's
+    (--pick-blocks), the pick rows spread over the training flight in that many blocks.
 
     The baselines run with BLAS on one thread, as ours and `sparse` run their fits (single_threaded_blas):
     the same numbers, but OpenBLAS's two threads spin on a loaded 2-core machine (STLSQ's least squares on
     15,000 x 153 took 7x the CPU time). settings: ours' engine settings (--settings; None: the defaults)."""
     if engine in ("discovery", "sparse"):
         return identify(train, engine=engine, budget=budget, seed=seed, progress=False, gravity=gravity,
-                        settings=settings, validate=validate)
+                        settings=settings, validate=validate, pick_blocks=pick_blocks)
     if engine not in BASELINES:
         raise SystemExit(f"unknown engine {engine!r} (known: {', '.join(ENGINES)})")
     with single_threaded_blas():
         if engine == "operon":
             return identify(train, engine=engine, budget=operon_generations, seed=seed, progress=False,
-                            gravity=gravity, validate=validate)
+                            gravity=gravity, validate=validate, pick_blocks=pick_blocks)
         if engine == "pysindy-physics":
             return _pysindy(build_library(DEFAULT_GROUPS), train)
         if engine == "pysindy-poly2":
@@ -655,6 +656,9 @@ def main() -> int:
     ap.add_argument("--validation-flight", action="store_true",
                     help="give ours the case's validation flight as its validation role (as `quadsr identify "
                          "--validate-log`), so the whole training flight fits and picks (README, session 14)")
+    ap.add_argument("--pick-blocks", type=int, default=1,
+                    help="ours picks on the training flight's pick time spread over this many blocks "
+                         "(identify --pick-blocks; README, session 14)")
     args = ap.parse_args()
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
     names = None if args.cases is None else [c.strip() for c in args.cases.split(",")]
@@ -675,6 +679,10 @@ def main() -> int:
         print(f"baseline {line}")
     if args.settings:
         settings.insert(0, f"ours and sparse with the engine settings of {args.settings}")
+        print(settings[0])
+    if args.pick_blocks != 1:
+        settings.insert(0, f"ours, sparse and pyoperon alone pick on {args.pick_blocks} blocks spread over "
+                           "the training flight")
         print(settings[0])
     if args.validation_flight:
         settings.insert(0, "ours, sparse and pyoperon alone validate on the validation flight (the whole "
@@ -708,7 +716,7 @@ def main() -> int:
         for engine in engines:
             start, cpu_start = time.perf_counter(), time.process_time()
             model = fit(engine, train, args.seed, gravity, args.budget, args.operon_generations, ours,
-                        validate=val if args.validation_flight else None)
+                        validate=val if args.validation_flight else None, pick_blocks=args.pick_blocks)
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
             save_model(model, models_dir / f"{slug}-{engine}.yaml")  # to trace a row's terms afterwards
             row = score(case.name, engine, model, raw_val if weak_case else val, reference, body_reference,
@@ -720,7 +728,8 @@ def main() -> int:
                 start, cpu_start = time.perf_counter(), time.process_time()
                 model = identify(raw_train, budget=args.budget, seed=args.seed, progress=False,
                                  gravity=gravity, weak=WeakSettings(), settings=ours,
-                                 validate=raw_val if args.validation_flight else None)
+                                 validate=raw_val if args.validation_flight else None,
+                                 pick_blocks=args.pick_blocks)
                 wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
                 save_model(model, models_dir / f"{slug}-discovery-weak.yaml")
                 row = score(case.name, "discovery-weak", model, raw_val, reference, body_reference, wall, cpu,

@@ -73,6 +73,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the longest differentiator window, 0.4 s)",
     )
     p.add_argument(
+        "--pick-blocks",
+        type=int,
+        default=1,
+        metavar="N",
+        help="spread each flight's pick time over N blocks (fit | gap | pick | gap | fit ...), so the pick "
+        "weighs the whole flight, not its last part (default 1: one block before the validation block)",
+    )
+    p.add_argument(
         "--pick-log",
         action="append",
         default=None,
@@ -309,6 +317,9 @@ def run_identify(args: argparse.Namespace) -> int:
     targets = parse_targets(args.targets)
     if args.budget < 1:
         raise UserError(f"--budget must be a whole number of generations >= 1, got {args.budget}")
+    if args.pick_blocks < 1:
+        raise UserError(f"--pick-blocks must be a whole number >= 1, got {args.pick_blocks}",
+                        hint="1 (the default): one pick block; 5: five blocks spread over each flight")
     for flag, value in (("--holdout", args.holdout), ("--validate-fraction", args.validate_fraction)):
         if not (0.0 < value < 1.0):
             raise UserError(f"{flag} must be a fraction between 0 and 1, got {value}")
@@ -361,7 +372,7 @@ def run_identify(args: argparse.Namespace) -> int:
 
     def split_roles():
         return assign_roles(dataset, pick=pick, validate=check, pick_fraction=args.holdout,
-                            validate_fraction=args.validate_fraction, gap_s=gap)
+                            validate_fraction=args.validate_fraction, gap_s=gap, pick_blocks=args.pick_blocks)
 
     motor = None
     if args.motor_curve is None:
@@ -390,6 +401,7 @@ def run_identify(args: argparse.Namespace) -> int:
         pick_fraction=args.holdout,
         validate_fraction=args.validate_fraction,
         gap_s=gap,
+        pick_blocks=args.pick_blocks,
         r2_threshold=args.r2_threshold,
         loss=args.loss,
         settings=settings,

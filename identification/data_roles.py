@@ -255,8 +255,34 @@ def _spread_layout(
     return best[1], best[0]
 
 
+def interleaved_masks(
+    t: np.ndarray, fractions: dict[str, float], gap: float, blocks: int
+) -> dict[str, np.ndarray]:
+    """Role masks over times t (s) with the pick rows in `blocks` equal blocks spread over the flight, each
+    in the middle of its share of the time before the validation block (if any, at the tail), gap (s) on
+    both sides of every held-out block: fit | gap | pick | gap | fit | ... | gap | validate."""
+    t = np.asarray(t, dtype=float)
+    t0, t1 = float(t.min()), float(t.max())
+    has_validate = "validate" in fractions
+    usable = max((t1 - t0) - gap * (2 * blocks + (1 if has_validate else 0)), 0.0)
+    pick_len = fractions["pick"] * usable / blocks
+    end = t1 - fractions["validate"] * usable - gap if has_validate else t1
+    masks = {"validate": t > end + gap * (1 - 1e-9)} if has_validate else {}
+    region = (end - t0) / blocks
+    pick = np.zeros(len(t), dtype=bool)
+    near = np.zeros(len(t), dtype=bool)
+    for k in range(blocks):
+        mid = t0 + (k + 0.5) * region
+        a, b = mid - 0.5 * pick_len, mid + 0.5 * pick_len
+        pick |= (t >= a) & (t <= b)
+        near |= (t >= a - gap) & (t <= b + gap)
+    masks["pick"] = pick
+    masks["fit"] = ~near & (t <= end)
+    return masks
+
+
 def _flight_masks(
-    t: np.ndarray, y: np.ndarray, fractions: dict[str, float], gap: float, file: str
+    t: np.ndarray, y: np.ndarray, fractions: dict[str, float], gap: float, file: str, pick_blocks: int = 1
 ) -> tuple[dict[str, np.ndarray], Layout | None]:
     """Role masks over one flight's rows (sorted by time t, s; targets y) and how they were placed."""
     roles = [r for r in ROLES if r in fractions]
@@ -265,6 +291,11 @@ def _flight_masks(
     if not held or len(t) < 2:
         return tail, None
     spread = _Spread(t, y)
+    if pick_blocks > 1 and "pick" in held:
+        masks = interleaved_masks(t, fractions, gap, pick_blocks)
+        ratio = min(_mask_ratio(spread, masks[r]) for r in held)
+        if ratio >= MIN_SPREAD_RATIO:
+            return masks, Layout(file, "interleaved", ratio, ratio, "")
     tail_ratio = min(_mask_ratio(spread, tail[r]) for r in held)  # the held-out blocks of the tail layout
     if tail_ratio >= MIN_SPREAD_RATIO:
         return tail, Layout(file, "tail", tail_ratio, tail_ratio, "")
@@ -308,11 +339,16 @@ def assign_roles(
     pick_fraction: float = 0.2,
     validate_fraction: float = 0.2,
     gap_s: float = DEFAULT_GAP_S,
+    pick_blocks: int = 1,
 ) -> DataRoles:
     """Split `data` into fit / pick / validate (module docstring); pick or validate flights replace the
-    in-flight blocks of that role. UserError when a role gets fewer than MIN_ROWS rows."""
+    in-flight blocks of that role; pick_blocks > 1 spreads the pick rows over each flight in that many
+    blocks (interleaved_masks). UserError when a role gets fewer than MIN_ROWS rows."""
     if not (gap_s >= 0 and np.isfinite(gap_s)):
         raise UserError(f"the gap between fit, pick and validation blocks must be >= 0 s, got {gap_s}")
+    if isinstance(pick_blocks, bool) or int(pick_blocks) != pick_blocks or pick_blocks < 1:
+        raise UserError(f"the number of pick blocks must be a whole number >= 1, got {pick_blocks}",
+                        hint="1: one pick block before the validation block (the default)")
     fractions = {"fit": 1.0}
     for role, given, frac in (("pick", pick, pick_fraction), ("validate", validate, validate_fraction)):
         if given is None:
@@ -331,7 +367,8 @@ def assign_roles(
     for i, f in enumerate(data.flights):
         rows = np.flatnonzero(data.flight == i)
         rows = rows[np.argsort(data.t[rows], kind="stable")]
-        flight_masks, layout = _flight_masks(data.t[rows], data.targets[rows], fractions, gap_s, f.file)
+        flight_masks, layout = _flight_masks(data.t[rows], data.targets[rows], fractions, gap_s, f.file,
+                                             int(pick_blocks))
         for r, m in flight_masks.items():
             masks[r][rows[m]] = True
         if layout is not None:

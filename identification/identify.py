@@ -131,6 +131,7 @@ def identify(
     pick_fraction: float = 0.2,
     validate_fraction: float = 0.2,
     gap_s: float = DEFAULT_GAP_S,
+    pick_blocks: int = 1,
     r2_threshold: float = R2_THRESHOLD,
     loss: str = "absolute",
     settings: EngineSettings | None = None,
@@ -144,7 +145,9 @@ def identify(
 
     budget: genetic-programming generations per target (an iteration count, not seconds). pick / validate:
     whole flights for those roles, else time blocks of each flight (pick_fraction, validate_fraction) with
-    gap_s (s) between blocks. r2_threshold: a target whose validation R^2 is below it is flagged.
+    gap_s (s) between blocks; pick_blocks > 1: the pick rows in that many blocks spread over each flight
+    (identification.data_roles.interleaved_masks). r2_threshold: a target whose validation R^2 is below it
+    is flagged.
     An engine that learns in the body frame (frame "body", the default engine) fits fx fy fz dwx dwy dwz
     (identification.body_frame, with `gravity` in m/s^2) and the NED targets are composed from them.
     weak: fit, pick and report in the weak form (identification.weak_form): every loss and metric is on
@@ -168,6 +171,7 @@ def identify(
         pick_fraction=pick_fraction,
         validate_fraction=validate_fraction,
         gap_s=gap_s,
+        pick_blocks=pick_blocks,
     )
     X, Y = _rows(roles.fit)
     Xp, Yp = _rows(roles.pick)

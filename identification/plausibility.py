@@ -5,8 +5,12 @@ term, such as ground effect, is judged where the log flew, not at the origin), e
 hover speed u_h: the median rotor speed of the rows, or the vehicle's hover speed when a vehicle file is
 given):
 - gravity: z'' with the rotors stopped is +g (NED, down) within 15%.
-- hover: z'' at u_h is near 0 (the log hovered there), within 15% of g; with a vehicle file, the mass
-  that the model's thrust implies (Ct * sum u_h^2 / thrust acceleration, kg) against the file's.
+- hover: with a vehicle file, z'' at its hover speed is near 0 (within 15% of g) and the mass that the
+  model's thrust implies (Ct * sum u_h^2 / thrust acceleration, kg) matches the file's. Without one, the
+  log's median rotor speed is no hover speed unless the log hovered (an open-loop excitation from altitude
+  falls at a fifth of the weight), so the model's own hover speed is solved for (all rotors equal, z'' = 0)
+  and must exist and lie within a factor HOVER_SPAN of the rotor speeds the log flew (p5..p95): else its
+  thrust balances gravity only by extrapolation, or not at.
 - control signs: more thrust (sum u_i^2) accelerates up (z'' < 0), the roll, pitch and yaw combinations
   f2, f3, f4 (docs/design.md) give positive wx', wy', wz'; a target that does not respond is flagged too
   (saying so when the identification found the flight does not excite it: checks.not_excited).
@@ -40,6 +44,7 @@ CONTROL = {
     "dwz": ("f4", 1.0, "the yaw combination f4 yaws right (wz' > 0)"),
 }
 SELF = {"ax": 3, "ay": 4, "az": 5, "dwx": 9, "dwy": 10, "dwz": 11}  # target -> its own state in xi
+HOVER_SPAN = 1.5  # the model's hover speed may lie this factor outside the log's p5..p95 rotor speeds
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,38 @@ class Check:
 def _eval(model, target: str, xi: np.ndarray, u: np.ndarray) -> np.ndarray:
     j = model.target_names.index(target)
     return np.asarray(model.predict(np.atleast_2d(xi), np.atleast_2d(u))[:, j], dtype=float)
+
+
+def model_hover_speed(model, level: np.ndarray, top: float) -> float | None:
+    """The rotor speed (rad/s, all four equal) at which the model's z'' is 0 at the state `level` (level,
+    at rest), the lowest in (0, top]; None when no speed there balances gravity."""
+    speeds = np.linspace(0.0, top, 401)
+    az = np.array([float(_eval(model, "az", level, np.full(4, s))[0]) for s in speeds])
+    below = np.flatnonzero(np.isfinite(az) & (az <= 0.0))
+    if not np.isfinite(az[0]) or az[0] <= 0.0 or below.size == 0:
+        return None
+    lo, hi = float(speeds[below[0] - 1]), float(speeds[below[0]])
+    for _ in range(50):  # bisection: z'' > 0 at lo, <= 0 at hi
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if float(_eval(model, "az", level, np.full(4, mid))[0]) > 0.0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def _hover_check(model, level: np.ndarray, u: np.ndarray) -> Check:
+    """The model's own hover speed against the rotor speeds the log flew (module docstring)."""
+    finite = u[np.all(np.isfinite(u), axis=1)] if u.ndim == 2 else u[np.isfinite(u)]
+    if finite.size == 0:
+        return Check("hover thrust", False, "the log has no finite rotor speeds to judge the hover by")
+    p5, p95 = (float(v) for v in np.percentile(finite, [5, 95]))
+    top = max(4.0 * float(np.max(finite)), 1.0)
+    u_star = model_hover_speed(model, level, top)
+    if u_star is None:
+        return Check("hover thrust", False, f"no rotor speed up to {top:.4g} rad/s makes z'' 0 at rest, "
+                     "level: the model's thrust never balances gravity")
+    ok = p5 / HOVER_SPAN <= u_star <= p95 * HOVER_SPAN
+    where = "within" if ok else "outside"
+    return Check("hover thrust", ok, f"the model hovers at {u_star:.4g} rad/s per rotor, {where} "
+                 f"{HOVER_SPAN:g}x the log's rotor speeds ({p5:.4g}..{p95:.4g} rad/s, p5..p95)")
 
 
 def plausibility_checks(
@@ -84,21 +121,21 @@ def plausibility_checks(
                 "gravity", ok, f"z'' with the rotors stopped {g_model:+.3g} m/s^2 (expected +{gravity:.3g})"
             )
         )
-        hover = float(_eval(model, "az", level, np.full(4, u_h))[0])
-        ok = abs(hover) <= 0.15 * gravity
-        text = (
-            f"z'' at the hover speed {u_h:.4g} rad/s is {hover:+.3g} m/s^2 "
-            f"(expected 0 within {0.15 * gravity:.2g})"
-        )
-        thrust_acc = g_model - hover  # m/s^2 of thrust at u_h
-        if vehicle is not None and thrust_acc > 0:
-            mass = vehicle.thrust_coefficient * 4 * u_h**2 / thrust_acc
-            ok = ok and abs(mass - vehicle.mass) <= 0.2 * vehicle.mass
-            text += f"; implied mass {mass:.3g} kg (vehicle file {vehicle.mass:.3g} kg)"
-        elif vehicle is None:
-            ok = ok and abs(thrust_acc / gravity - 1.0) <= 0.2
-            text += f"; thrust/weight at u_h {thrust_acc / gravity:.2f} (the log hovers: expected 1 +- 0.2)"
-        checks.append(Check("hover thrust", ok, text))
+        if vehicle is not None:
+            hover = float(_eval(model, "az", level, np.full(4, u_h))[0])
+            ok = abs(hover) <= 0.15 * gravity
+            text = (
+                f"z'' at the hover speed {u_h:.4g} rad/s is {hover:+.3g} m/s^2 "
+                f"(expected 0 within {0.15 * gravity:.2g})"
+            )
+            thrust_acc = g_model - hover  # m/s^2 of thrust at u_h
+            if thrust_acc > 0:
+                mass = vehicle.thrust_coefficient * 4 * u_h**2 / thrust_acc
+                ok = ok and abs(mass - vehicle.mass) <= 0.2 * vehicle.mass
+                text += f"; implied mass {mass:.3g} kg (vehicle file {vehicle.mass:.3g} kg)"
+            checks.append(Check("hover thrust", ok, text))
+        else:
+            checks.append(_hover_check(model, level, np.asarray(u, dtype=float)))
     delta = max(1.0, 0.02 * u_h)
     unexcited = _not_excited(model)
     for target, (combo, sign, what) in CONTROL.items():

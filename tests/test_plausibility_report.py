@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import sympy
 from synthetic_data import synthetic_dataset
@@ -129,3 +130,29 @@ def test_an_equation_with_abs_of_a_rate_is_displayed_not_raised():
     lines = equation_text("dwy", 0.7 * S["wx"] * sympy.Abs(S["wz"]) - 0.0046 * S["wy"])
     groups = {group for group, _ in lines}
     assert "coupling" in groups and "drag" in groups
+
+
+def test_without_a_vehicle_the_hover_is_the_models_own_not_the_logs_median_speed():
+    # an open-loop excitation from altitude falls: its rotors run at about half the hover speed, so the
+    # median rotor speed is no hover speed; the true model hovers where the vehicle does (~ the file's)
+    model = QuadrotorModel.from_model(true_model("fang-chen-buaa"))
+    vehicle = load_vehicle("fang-chen-buaa")
+    data = synthetic_dataset(400, seed=2)
+    rng = np.random.default_rng(0)
+    falling = vehicle.hover_speed * rng.uniform(0.3, 0.9, (400, 4))
+    check = {c.name: c for c in plausibility_checks(model, data.xi, falling)}["hover thrust"]
+    assert check.ok, check.text
+    hover = float(check.text.split("hovers at ")[1].split(" rad/s")[0])
+    assert abs(hover / vehicle.hover_speed - 1.0) < 0.01
+    # a model whose thrust never balances gravity (z'' without the rotors' term) is flagged
+    exprs = dict(true_model("fang-chen-buaa").expressions)
+    exprs["az"] = sympy.Float(9.8)
+    flat = {c.name: c for c in plausibility_checks(QuadrotorModel.from_model(Model(exprs)), data.xi, falling)}
+    assert not flat["hover thrust"].ok and "never balances gravity" in flat["hover thrust"].text
+    # one that hovers only far beyond the speeds the log flew (thrust 4x too weak: twice the speed) is flagged
+    az = true_model("fang-chen-buaa").expressions["az"]
+    thrust = az - az.subs({S[f"u{i}"]: 0 for i in range(1, 5)})  # the rotor terms (negative: up, NED)
+    exprs["az"] = 9.8 + thrust / 4
+    weak = {c.name: c for c in plausibility_checks(QuadrotorModel.from_model(Model(exprs)), data.xi, falling)}
+    assert not weak["hover thrust"].ok and "outside" in weak["hover thrust"].text
+

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from synthetic_data import synthetic_dataset
 
+from bridge.errors import UserError
 from identification.data_roles import DEFAULT_GAP_S, MIN_SPREAD_RATIO, assign_roles, time_block_masks
 from identification.dataset import Dataset, load_dataset
 from identification.flight_evidence import NoFlightError, no_flight_evidence
@@ -139,3 +140,26 @@ def test_the_real_hardware_log_that_never_armed_says_no_flight_with_its_evidence
     err = capsys.readouterr().err
     assert code == 2 and "holds no flight" in err and "Traceback" not in err
     assert not (tmp_path / "m.yaml").exists()
+
+
+def test_pick_blocks_spread_the_pick_over_the_flight_each_a_gap_from_every_fit_row(tmp_path, capsys):
+    data = synthetic_dataset(5000, seed=4)  # 20 s
+    roles = assign_roles(data, pick_blocks=4)
+    (layout,) = roles.layouts
+    assert layout.kind == "interleaved" and roles.notes() == []
+    pieces = [b for b in roles.blocks if b.role == "pick"]
+    assert len(pieces) == 4
+    span = data.t[-1] - data.t[0]
+    assert pieces[0].t_end < data.t[0] + 0.25 * span and pieces[-1].t_start > data.t[0] + 0.5 * span
+    fit, pick, val = roles.fit.t, roles.pick.t, roles.validate.t
+    assert np.min(np.abs(fit[:, None] - pick[None, :])) >= DEFAULT_GAP_S - 1e-9
+    assert val.min() - max(fit.max(), pick.max()) >= DEFAULT_GAP_S - 1e-9  # the tail validates
+    usable = span - DEFAULT_GAP_S * (2 * 4 + 1)
+    assert abs(len(pick) * 0.004 - 0.2 * usable) < 0.1 and abs(len(val) * 0.004 - 0.2 * usable) < 0.1
+    with pytest.raises(UserError, match="pick blocks"):
+        assign_roles(data, pick_blocks=0)
+    log = tmp_path / "flight.csv"
+    log.write_text("not a log\n")
+    code = main(["identify", str(log), "--pick-blocks", "0", "-o", str(tmp_path / "m.yaml")])
+    err = capsys.readouterr().err
+    assert code == 2 and "--pick-blocks must be a whole number >= 1" in err and "Traceback" not in err
