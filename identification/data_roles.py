@@ -34,6 +34,7 @@ per piece.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -296,6 +297,11 @@ def _flight_masks(
         ratio = min(_mask_ratio(spread, masks[r]) for r in held)
         if ratio >= MIN_SPREAD_RATIO:
             return masks, Layout(file, "interleaved", ratio, ratio, "")
+        masks, layout = _flight_masks(t, y, fractions, gap, file)
+        return masks, dataclasses.replace(layout, note=(
+            f"note: {file}: {pick_blocks} pick blocks spread over the flight would hold a target that barely "
+            f"varies (smallest spread {ratio:.2f} < {MIN_SPREAD_RATIO:g}): one pick block ({layout.kind} "
+            "layout) instead" + (f"; {layout.note[len('note: '):]}" if layout.note else "")))
     tail_ratio = min(_mask_ratio(spread, tail[r]) for r in held)  # the held-out blocks of the tail layout
     if tail_ratio >= MIN_SPREAD_RATIO:
         return tail, Layout(file, "tail", tail_ratio, tail_ratio, "")

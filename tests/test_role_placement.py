@@ -158,6 +158,9 @@ def test_pick_blocks_spread_the_pick_over_the_flight_each_a_gap_from_every_fit_r
     assert abs(len(pick) * 0.004 - 0.2 * usable) < 0.1 and abs(len(val) * 0.004 - 0.2 * usable) < 0.1
     with pytest.raises(UserError, match="pick blocks"):
         assign_roles(data, pick_blocks=0)
+    steady = assign_roles(_steady_tail(3000, seed=11), pick_blocks=4)  # its tail (validate) barely varies
+    (fallback,) = steady.layouts
+    assert fallback.kind == "spread" and "4 pick blocks spread over the flight" in fallback.note
     log = tmp_path / "flight.csv"
     log.write_text("not a log\n")
     code = main(["identify", str(log), "--pick-blocks", "0", "-o", str(tmp_path / "m.yaml")])
