@@ -297,15 +297,23 @@ def _flight_masks(
         ratio = min(_mask_ratio(spread, masks[r]) for r in held)
         if ratio >= MIN_SPREAD_RATIO:
             return masks, Layout(file, "interleaved", ratio, ratio, "")
-        masks, layout = _flight_masks(t, y, fractions, gap, file)
+        masks, layout = _one_pick_block(t, tail, held, gap, file, spread)
         return masks, dataclasses.replace(layout, note=(
             f"note: {file}: {pick_blocks} pick blocks spread over the flight would hold a target that barely "
             f"varies (smallest spread {ratio:.2f} < {MIN_SPREAD_RATIO:g}): one pick block ({layout.kind} "
             "layout) instead" + (f"; {layout.note[len('note: '):]}" if layout.note else "")))
+    return _one_pick_block(t, tail, held, gap, file, spread)
+
+
+def _one_pick_block(
+    t: np.ndarray, tail: dict[str, np.ndarray], held: dict[str, float], gap: float, file: str, spread: _Spread
+) -> tuple[dict[str, np.ndarray], Layout]:
+    """The tail layout's masks, or the held-out blocks moved where every target varies (module docstring),
+    and how they were placed; held: the held-out roles' fractions, spread: the flight's spread sums."""
     tail_ratio = min(_mask_ratio(spread, tail[r]) for r in held)  # the held-out blocks of the tail layout
     if tail_ratio >= MIN_SPREAD_RATIO:
         return tail, Layout(file, "tail", tail_ratio, tail_ratio, "")
-    usable = float(t[-1] - t[0]) - gap * (len(roles) - 1)
+    usable = float(t[-1] - t[0]) - gap * len(held)  # the fit block and each held-out one, a gap between
     blocks, ratio = _spread_layout(spread, held, usable, gap)
     if not blocks or ratio < MIN_SPREAD_RATIO:
         note = (

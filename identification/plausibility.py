@@ -69,7 +69,7 @@ def model_hover_speed(model, level: np.ndarray, top: float) -> float | None:
     """The rotor speed (rad/s, all four equal) at which the model's z'' is 0 at the state `level` (level,
     at rest), the lowest in (0, top]; None when no speed there balances gravity."""
     speeds = np.linspace(0.0, top, 401)
-    az = np.array([float(_eval(model, "az", level, np.full(4, s))[0]) for s in speeds])
+    az = _eval(model, "az", np.tile(level, (len(speeds), 1)), np.repeat(speeds[:, None], 4, axis=1))
     below = np.flatnonzero(np.isfinite(az) & (az <= 0.0))
     if not np.isfinite(az[0]) or az[0] <= 0.0 or below.size == 0:
         return None
@@ -82,7 +82,7 @@ def model_hover_speed(model, level: np.ndarray, top: float) -> float | None:
 
 def _hover_check(model, level: np.ndarray, u: np.ndarray) -> Check:
     """The model's own hover speed against the rotor speeds the log flew (module docstring)."""
-    finite = u[np.all(np.isfinite(u), axis=1)] if u.ndim == 2 else u[np.isfinite(u)]
+    finite = u[np.all(np.isfinite(u), axis=1)]  # (N,4) rad/s
     if finite.size == 0:
         return Check("hover thrust", False, "the log has no finite rotor speeds to judge the hover by")
     p5, p95 = (float(v) for v in np.percentile(finite, [5, 95]))
