@@ -193,6 +193,18 @@ class SelectionSettings:
     # a target is not excited by the flight when no candidate that passes these rules has a pick loss below
     # the constant model's by this fraction: it gets the minimal physical model (physics_candidates)
     min_gain: float = 0.05
+    # with cv_folds 0: the chosen structure's coefficients refit on the fit and pick rows together
+    # (identification.refit); false: they stay as fitted on the fit rows alone (cross-validation refits)
+    refit_with_pick_rows: bool = False
+    # > 1: the pick scores each candidate by blocked K-fold cross-validation over the fit and pick rows
+    # (identification.cross_validation) instead of its loss on the pick rows, polishes the pick by one-term
+    # moves scored alike (identification.cv_polish) and refits the chosen structure on both; 0: the pick
+    # rows alone (as before session 15; README "Where discovery stands (session 15)")
+    cv_folds: int = 5
+    # the rows are cut into cv_folds x this many contiguous blocks, dealt to the folds in turn: a fold's
+    # held-out rows spread over the flight (one block per fold makes each fold's fit extrapolate to a
+    # regime it never saw, such as the fast fall of an open-loop flight)
+    cv_blocks_per_fold: int = 6
 
 
 @dataclass(frozen=True)
@@ -228,6 +240,13 @@ def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
         raise UserError(f"{where}: not found", hint="give the path of an engine settings YAML file")
     data = load_yaml_file(p, where)
     settings = read_dataclass(Section(where, data or {}, hint=SETTINGS_HINT), EngineSettings)
+    folds = settings.selection.cv_folds
+    if folds == 1 or folds < 0:
+        raise UserError(f"{where}: key 'selection.cv_folds': {folds} folds",
+                        hint="0 (pick on the pick rows alone) or 2 or more (blocked K-fold cross-validation)")
+    if settings.selection.cv_blocks_per_fold < 1:
+        raise UserError(f"{where}: key 'selection.cv_blocks_per_fold': must be 1 or more",
+                        hint="the blocks each fold holds out, spread over the flight")
     bad = [g for g in settings.sparse.groups if g not in GROUPS]
     if bad:
         raise UserError(

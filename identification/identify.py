@@ -7,6 +7,12 @@ candidate's self-feedback is measured (identification.self_feedback: anti-dampin
 pick), and a target the flight does not excite (identification.pareto.excited) gets the minimal physical
 model with a flag (engine.flags, checks.not_excited).
 
+With SelectionSettings.cv_folds > 1 the pick's evidence is blocked K-fold cross-validation over the fit and
+pick rows together (identification.cross_validation: each candidate's terms refit without each fold and
+the gap rows beside it), the pick is polished by one-term moves over every candidate's terms scored alike
+(identification.cv_polish), and the chosen terms are refit on the fit and pick rows (identification.refit;
+also alone with refit_with_pick_rows). The validation rows are in no fold.
+
 Losses: 'absolute' (MAE, the paper's fitness) or 'squared' (RMSE), in the target's unit. The pick rule is
 identification.pareto's. The budget is an iteration count (genetic-programming generations per target), so
 the same data, settings and seed give the same model on any machine.
@@ -14,6 +20,7 @@ the same data, settings and seed give the same model on any machine.
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -42,9 +49,12 @@ from identification.collinearity import (
     term_shapes,
     terms_collinearity,
 )
+from identification.cross_validation import FoldedRows, attach_cross_validated
+from identification.cv_polish import polish_by_cross_validation
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
+from identification.engine_settings import SelectionSettings
 from identification.equation_form import equation_text
 from identification.height_law import body_values
 from identification.library import build_library, feature_matrix
@@ -52,8 +62,9 @@ from identification.metrics import LOSSES, table_metrics, weak_metrics
 from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel, expression_to_string
 from identification.pareto import admissible, attach_holdout, excited, front_points, select
 from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
+from identification.refit import refit_rows
 from identification.self_feedback import mark_self_feedback
-from identification.weak_form import WeakSettings, weak_rows
+from identification.weak_form import WeakSettings, overlap_lag, weak_rows
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
@@ -194,6 +205,7 @@ def identify(
     identifiability: dict[str, Any] = {}
     below: dict[str, float] = {}
     not_excited: dict[str, dict[str, Any]] = {}
+    evidence: dict[str, str] = {}  # per target: what the pick scored candidates on
     warnings: list[str] = roles.notes()  # where the held-out blocks went when a flight's tail is steady
     engine_notes: list[str] = []
     total_start = time.perf_counter()
@@ -229,15 +241,45 @@ def identify(
         engine_notes += new_notes
         warnings += [f"note: {n}" for n in new_notes]
         candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"])
-        attach_holdout(candidates, Xp[okp], yp[okp], loss, ops["pick"])
+        folded = None
+        if settings.selection.cv_folds > 1:  # the pick's evidence: blocked K-fold CV over fit and pick rows
+            folded = FoldedRows(
+                [(X[ok], y[ok], ops["train"], _gap_rows(roles.fit.t[ok], ops["train"], gap_s)),
+                 (Xp[okp], yp[okp], ops["pick"], _gap_rows(roles.pick.t[okp], ops["pick"], gap_s))],
+                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold)
+            if not folded.usable:
+                line = (f"note: {name}: the fit and pick rows ({len(folded.y)}) are too few for "
+                        f"{settings.selection.cv_folds}-fold cross-validation with {gap_s:g} s gaps beside "
+                        "each held-out block; the pick rows alone pick")
+                warnings.append(line)
+                evidence[name] = "pick rows (too few rows for cross-validation)"
+                folded = None
+        if folded is not None:
+            attach_cross_validated(candidates, folded, loss)
+            per_fold = folded.blocks // folded.folds
+            evidence[name] = (f"blocked {folded.folds}-fold cross-validation over the fit and pick rows "
+                              f"({per_fold} block{'s' if per_fold > 1 else ''} per fold)")
+        else:
+            attach_holdout(candidates, Xp[okp], yp[okp], loss, ops["pick"])
         mark_self_feedback(candidates, X[ok], y[ok], name)
         pick_y = yp[okp] if ops["pick"] is None else ops["pick"] @ yp[okp]
-        chosen = select(candidates, settings.selection, scale=float(np.std(pick_y)) if okp.any() else 1.0)
-        flag = _excitation(name, candidates, (X[ok], y[ok]), (Xp[okp], yp[okp]), loss, ops, settings)
+        scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
+        chosen = select(candidates, settings.selection, scale=scale)
+        if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
+            chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
+                                                functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
+                                                                  target=name))
+        flag = _excitation(name, candidates, (X[ok], y[ok]), (Xp[okp], yp[okp]), loss, ops, settings, folded)
         if flag is not None:
             chosen, line, not_excited[name] = flag
             candidates.append(chosen)
             warnings.append(f"warning: {line}")
+        if settings.selection.refit_with_pick_rows or folded is not None:
+            refit = refit_rows(chosen, [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])], loss,
+                               settings.sparse.irls_iterations, settings.sparse.irls_max_terms)
+            if refit is not None:
+                candidates = [refit if c is chosen else c for c in candidates]
+                chosen = refit
         elapsed = time.perf_counter() - start
         metrics = {
             split: table_metrics(yy, chosen.evaluate(xx)) if ops[split] is None
@@ -338,7 +380,7 @@ def identify(
     if body_frame:
         engine_info["learned_in"] = "body frame FRD: fx fy fz dwx dwy dwz; ax ay az = R f_b + g e_z"
     extra = {
-        "data": roles.as_dict(),
+        "data": {**roles.as_dict(), **_evidence(settings.selection, evidence)},
         "checks": {
             "validation_r2_threshold": float(r2_threshold),
             "below_threshold": below,
@@ -373,16 +415,25 @@ def _excitation(
     loss: str,
     ops: dict[str, Any],
     settings: EngineSettings,
+    folded: FoldedRows | None = None,
 ) -> tuple[Candidate, str, dict[str, Any]] | None:
     """None when the flight excites the target (identification.pareto.excited); else (the minimal physical
-    model, fitted on the fit rows, a line saying so, the record for the model file)."""
+    model, fitted on the fit rows, a line saying so, the record for the model file). folded: the pick's
+    cross-validation rows, when it cross-validates (else the pick rows score)."""
+
+    def score(cands: list[Candidate]) -> None:
+        if folded is not None:
+            attach_cross_validated(cands, folded, loss)
+        else:
+            attach_holdout(cands, *pick, loss, ops["pick"])
+
     constant = fit_terms(("1",), *fit, loss, ops["train"])
-    attach_holdout([constant], *pick, loss, ops["pick"])
+    score([constant])
     const_loss = float(constant.holdout_loss) if constant.holdout_loss is not None else float("nan")
     if not np.isfinite(const_loss) or excited(candidates, const_loss, settings.selection):
         return None
     minimal = minimal_candidate(name, *fit, loss, ops["train"])
-    attach_holdout([minimal], *pick, loss, ops["pick"])
+    score([minimal])
     passing = [c.holdout_loss for c in candidates if admissible(c, settings.selection)]
     best = min((v for v in passing if v is not None and np.isfinite(v)), default=float("nan"))
     composed = " (ax, ay, az are composed from it)" if name in ("fx", "fy", "fz") else ""
@@ -403,3 +454,24 @@ def _excitation(
         "flag": line,
     }
     return minimal, line, record
+
+
+def _gap_rows(t: np.ndarray, operator: Any, gap_s: float) -> int:
+    """Rows either side of a held-out fold its fits leave out: the weak windows' overlap (weak rows), else
+    the rows within gap_s (s) at the rows' median sampling interval (the derivative windows' reach)."""
+    if operator is not None:
+        return overlap_lag(operator)
+    dt = np.diff(np.asarray(t, float))
+    dt = dt[dt > 0]
+    return int(np.ceil(gap_s / float(np.median(dt)))) if dt.size else 0
+
+
+def _evidence(selection: SelectionSettings, per_target: dict[str, str]) -> dict[str, Any]:
+    """What the pick scored candidates on (per target) and which rows fitted the chosen coefficients."""
+    cv = any(v.startswith("blocked") for v in per_target.values())
+    kinds = set(per_target.values())
+    return {
+        "pick_evidence": next(iter(kinds)) if len(kinds) == 1 else per_target if kinds else "pick rows",
+        "coefficients_fitted_on": "fit and pick rows (the structure chosen, then refit on both)"
+        if cv or selection.refit_with_pick_rows else "fit rows",
+    }

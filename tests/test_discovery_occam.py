@@ -127,6 +127,12 @@ def test_paired_loss_t() -> None:
     assert abs(np.mean(d)) / (np.std(d) / np.sqrt(n)) > 5
     assert abs(paired_loss_t(y, y + drift, y + 0.1, "absolute", 20)) < 4
     assert np.isnan(paired_loss_t(y, np.full(n, np.nan), good, "absolute", 20))
+    # two models that both fit every row to float rounding: a tie, whatever the last bits say (one
+    # consistently 1e-16 worse would otherwise be "significantly" worse, and which one is depends on the
+    # machine's arithmetic); at 1e-6 of the spread the difference is evidence again
+    exact, exact_worse = y + 1e-16 * rng.normal(size=n), y + 4e-16 * (1 + rng.normal(size=n) ** 2)
+    assert paired_loss_t(y, exact_worse, exact, "absolute", 20) == 0.0
+    assert paired_loss_t(y, y + 4e-6 * (1 + rng.normal(size=n) ** 2), exact, "absolute", 20) > 10
 
 
 def test_term_removals_match_brute_force_least_squares() -> None:

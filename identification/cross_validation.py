@@ -1,0 +1,175 @@
+"""Blocked K-fold cross-validation over the fit and pick rows: the final pick's evidence when
+SelectionSettings.cv_folds > 1 (identification.identify).
+
+The single pick block is a fifth of the flight: on a noisy flight two structures a few per cent apart
+swap order from one block to another (realistic-sensor fang-chen-aero's fy: u_i wz against u_i^2 wz,
+README session 14). Here every candidate's terms are refit K times, each time without one of K contiguous
+blocks of the fit and pick rows and without `gap` rows on either side of it (the rows whose derivative
+windows or weak-form test functions overlap the held-out block's), and scored on the block left out; the
+candidate's held-out loss is the loss of those held-out predictions over all rows. Each prediction comes
+from a fit that never saw its row, so the pick still chooses on data its fits did not use; the
+validation rows are in no fold.
+
+The refits are least squares (the absolute-error refit is left out: K refits per candidate, and the
+ranking, not the coefficients, is what the folds are for); the chosen structure is then refit once on
+all the folds (identification.refit).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import sympy
+from scipy import sparse
+
+from identification.body_frame import expression_columns
+from identification.candidate import Candidate
+from identification.collinearity import term_shapes
+from identification.metrics import loss as loss_fn
+from identification.sparse import single_threaded_blas
+
+MIN_BLOCK_GAPS = 4  # a held-out block is at least this many gaps long (fewer blocks per fold if need be)
+Part = tuple[np.ndarray, np.ndarray, "sparse.spmatrix | None", int]  # X (N,16), y (N,), weak op, gap rows
+
+
+class FoldedRows:
+    """The fit and pick rows (point or weak rows) cut into K contiguous folds, with each term's values on
+    them computed once (candidates of one target share most terms)."""
+
+    def __init__(self, parts: Sequence[Part], folds: int, blocks_per_fold: int = 1):
+        """parts: (X (N,16), y (N,) in the target's unit, the weak operator of those rows or None, the gap
+        in rows either side of a held-out block); folds >= 2; the rows are cut into folds x blocks_per_fold
+        contiguous blocks, dealt to the folds in turn (fold k holds blocks k, k + folds, ...); fewer blocks
+        per fold where a block would be shorter than MIN_BLOCK_GAPS gaps; `usable` False when even one
+        block per fold would be (too few rows: the caller picks on the pick rows instead)."""
+        if folds < 2:
+            raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
+        self.parts = [p for p in parts if len(p[0])]
+        ys = [np.asarray(y, float) if op is None else np.asarray(op @ y, float) for _, y, op, _ in self.parts]
+        self.y = np.concatenate(ys) if ys else np.zeros(0)
+        self._first = len(ys[0]) if ys else 0  # the first part's rows (the fit rows)
+        n = len(self.y)
+        self.folds = min(int(folds), max(n, 1))
+        gap = max((g for *_, g in self.parts), default=0)
+        # a block at least MIN_BLOCK_GAPS gaps long, so that a fold's fit keeps most rows beside its gaps
+        most = n // max(MIN_BLOCK_GAPS * gap, 1)
+        per_fold = max(1, min(int(blocks_per_fold), most // self.folds))
+        self.usable = most >= self.folds  # else the gaps would leave the folds' fits (nearly) no rows
+        count = min(self.folds * per_fold, max(n, 1))
+        self.blocks = count
+        bounds = np.linspace(0, n, count + 1).round().astype(int)
+        # rows left out of fold k's fit: its blocks and `gap` rows either side of each
+        self.held, self.dropped = [], []
+        for k in range(self.folds):
+            blocks = range(k, count, self.folds)
+            self.held.append(np.concatenate([np.arange(bounds[b], bounds[b + 1]) for b in blocks]))
+            drop = np.zeros(n, bool)
+            for b in blocks:
+                drop[max(bounds[b] - gap, 0):min(bounds[b + 1] + gap, n)] = True
+            self.dropped.append(np.flatnonzero(drop))
+        self._columns: dict[sympy.Expr, np.ndarray] = {}  # sympy expressions hash by structure
+        self._index: dict[sympy.Expr, int] = {}  # prepare(): a term's column in the prepared Gram matrices
+
+    @property
+    def scale(self) -> float:
+        """The target's standard deviation over the rows (the pick's abs_tol scale)."""
+        return float(np.std(self.y)) if len(self.y) else 1.0
+
+    def column(self, shape: sympy.Expr) -> np.ndarray:
+        """A term's values (M,) over the rows (weak rows integrated)."""
+        if shape not in self._columns:
+            values = []
+            for X, _, op, _ in self.parts:
+                col = expression_columns([shape], X)[:, 0]
+                values.append(np.asarray(col if op is None else op @ col, float))
+            self._columns[shape] = np.concatenate(values) if values else np.zeros(0)
+        return self._columns[shape]
+
+    def fit_part(self, shapes: Sequence[sympy.Expr]) -> tuple[np.ndarray, np.ndarray, int | None]:
+        """The terms' columns (M,k) and the target (M,) on the first part's rows (the fit rows), and the
+        lag of their rows' correlation for t ratios (the weak windows' overlap; None: point rows)."""
+        a = np.column_stack([self.column(s)[:self._first] for s in shapes])
+        op, gap = (self.parts[0][2], self.parts[0][3]) if self.parts else (None, 0)
+        return a, self.y[:self._first], None if op is None else gap
+
+    def prepare(self, shapes: Sequence[sympy.Expr]) -> None:
+        """Precompute the Gram matrices of these terms (finite ones) over all rows and over each fold's
+        dropped rows, so that a model of any of them is scored in O(k^3) per fold plus its held-out rows
+        (cv_polish scores thousands of one-term moves over one pool of terms)."""
+        keys: dict[sympy.Expr, None] = {}
+        cols = []
+        for s in shapes:
+            col = self.column(s)
+            if s not in keys and np.all(np.isfinite(col)):
+                keys[s] = None
+                cols.append(col)
+        if not cols or not len(self.y):
+            return
+        a = np.column_stack(cols)
+        size = np.sqrt(np.mean(a * a, axis=0))
+        size[size == 0] = 1.0
+        a = a / size
+        self._index = {k: i for i, k in enumerate(keys)}
+        self._scaled = a
+        self._gram, self._rhs = a.T @ a, a.T @ self.y
+        self._dropped_gram = [a[d].T @ a[d] for d in self.dropped]
+        self._dropped_rhs = [a[d].T @ self.y[d] for d in self.dropped]
+
+    def predictions(self, shapes: Sequence[sympy.Expr]) -> np.ndarray:
+        """Each row's prediction by the terms refit (least squares) without the row's fold; NaN when a
+        term is not finite."""
+        if not len(self.y):
+            return np.zeros(0)
+        idx = [self._index.get(s) for s in shapes]
+        if all(i is not None for i in idx):  # prepared terms: the Gram matrices' submatrices
+            out = np.empty(len(self.y))
+            sub = np.ix_(idx, idx)
+            grams = np.stack([self._gram[sub] - d[sub] for d in self._dropped_gram])
+            rhs = np.stack([self._rhs[idx] - d[idx] for d in self._dropped_rhs])
+            for held, coef in zip(self.held, _solve(grams, rhs), strict=True):
+                out[held] = self._scaled[np.ix_(held, idx)] @ coef
+            return out
+        a = np.column_stack([self.column(s) for s in shapes])
+        if not np.all(np.isfinite(a)):
+            return np.full(len(self.y), np.nan)
+        size = np.sqrt(np.mean(a * a, axis=0))
+        size[size == 0] = 1.0
+        a = a / size
+        gram, rhs = a.T @ a, a.T @ self.y
+        grams = np.stack([gram - a[d].T @ a[d] for d in self.dropped])
+        rhss = np.stack([rhs - a[d].T @ self.y[d] for d in self.dropped])
+        out = np.empty(len(self.y))
+        for held, coef in zip(self.held, _solve(grams, rhss), strict=True):
+            out[held] = a[held] @ coef
+        return out
+
+    def terms_loss(self, shapes: Sequence[sympy.Expr], kind: str) -> float:
+        """The cross-validated loss of a model of these terms; inf when a term is not finite."""
+        return loss_fn(self.y, self.predictions(shapes), kind) if len(self.y) else float("inf")
+
+    def loss(self, expression: sympy.Expr, kind: str) -> float:
+        """The cross-validated loss of an expression's terms (module docstring); inf when not finite."""
+        shapes = term_shapes(expression)
+        if not shapes or not len(self.y):
+            return float("inf") if shapes else loss_fn(self.y, np.zeros_like(self.y), kind)
+        return self.terms_loss(shapes, kind)
+
+
+def _solve(grams: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Each fold's normal equations (K,k,k) x = (K,k) solved at once; a singular one (duplicate terms)
+    by least squares, the minimum-norm solution."""
+    try:
+        return np.linalg.solve(grams, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.stack([np.linalg.lstsq(g, r, rcond=1e-13)[0] for g, r in zip(grams, rhs, strict=True)])
+
+
+def attach_cross_validated(candidates: Sequence[Candidate], rows: FoldedRows, kind: str) -> None:
+    """Set each candidate's held-out loss to its cross-validated loss over `rows`."""
+    with single_threaded_blas():
+        for c in candidates:
+            try:
+                c.holdout_loss = rows.loss(c.expression, kind)
+            except (ValueError, TypeError, ZeroDivisionError, OverflowError, np.linalg.LinAlgError):
+                c.holdout_loss = float("inf")

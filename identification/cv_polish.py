@@ -1,0 +1,128 @@
+"""One-term moves from the pick, scored by cross-validation (SelectionSettings.cv_folds > 1).
+
+The engine builds its candidates and polishes its pick against the pick rows (identification.discovery),
+and the terms it found live in many candidates: genetic programming's shapes in one, the paths' in
+another. On realistic-sensor fang-chen-aero's fy the pick had wz (u1^2 - u2^2 + u3^2 - u4^2) and a
+constant (the accelerometer's bias); genetic programming had found wz (u1 - u2 + u3 - u4), but only in
+candidates without the constant. Here the pick's terms are swapped one at a time for any term of any
+candidate, removed, or one such term added; every move is scored by the same cross-validation as the
+candidates (identification.cross_validation) and joins them, and the pick's own rule (identification.pareto:
+identified on the fit rows, no anti-damping, the simplest within tolerance of the best) picks again, until
+the pick stays (at most `rounds` times). The moves are fitted on the fit rows, as the engine's candidates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import sympy
+
+from identification.body_frame import expression_columns
+from identification.candidate import Candidate
+from identification.collinearity import term_identification, term_shapes
+from identification.cross_validation import FoldedRows
+from identification.engine_settings import SelectionSettings
+from identification.library import Feature
+from identification.metrics import loss as loss_fn
+from identification.model_file import complexity
+from identification.pareto import select, within_tolerance
+from identification.sparse import single_threaded_blas, sparse_expression
+
+
+def model_size(shapes: Sequence[sympy.Expr]) -> int:
+    """The complexity the engine gives a linear model of these terms (nodes, 2 per coefficient, 1 per sum)."""
+    return sum(complexity(s) + (1 if s == 1 else 2) for s in shapes) + (1 if len(shapes) > 1 else 0)
+
+
+def polish_by_cross_validation(
+    chosen: Candidate,
+    candidates: list[Candidate],
+    folded: FoldedRows,
+    kind: str,
+    selection: SelectionSettings,
+    mark: Callable[[list[Candidate]], None],
+    rounds: int = 4,
+    engine: str = "cv-polish",
+) -> Candidate:
+    """The pick after up to `rounds` rounds of one-term moves (module docstring); the moves that could be
+    picked (within the pick's tolerance of the best) are appended to `candidates`. mark: sets the new
+    candidates' self-feedback (identification.self_feedback on the fit rows)."""
+    with single_threaded_blas():  # small solves: BLAS threads only contend
+        return _polish(chosen, candidates, folded, kind, selection, mark, rounds, engine)
+
+
+def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, kind: str,
+            selection: SelectionSettings, mark: Callable[[list[Candidate]], None], rounds: int,
+            engine: str) -> Candidate:
+    pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
+    for c in candidates:
+        for s in term_shapes(c.expression):
+            pool.setdefault(s, s)
+    seen = {_key(term_shapes(c.expression)) for c in candidates}
+    distinct: dict[bytes, sympy.Expr] = {}  # one term per column of values: twins only make ties
+    for s in [*term_shapes(chosen.expression), *pool]:
+        distinct.setdefault(folded.column(s).tobytes(), s)
+    pool = {s: s for s in distinct.values()}
+    folded.prepare(list(pool.values()))
+    scale = folded.scale
+    for _ in range(rounds):
+        current = term_shapes(chosen.expression)
+        moves = _moves(current, list(pool.values()))
+        scored = []
+        for shapes in moves:
+            key = _key(shapes)
+            if key in seen:
+                continue
+            seen.add(key)
+            value = folded.terms_loss(shapes, kind) if shapes else float("inf")
+            if np.isfinite(value):
+                scored.append((value, shapes))
+        # a move the pick can choose is within its tolerance of the best identified loss, which is at most
+        # the current pick's (whether a move is identified is measured only when the pick asks)
+        limit = within_tolerance(float(chosen.holdout_loss), selection, scale)
+        new = [c for value, shapes in scored if value <= limit
+               and (c := move_candidate(shapes, value, folded, kind, engine)) is not None]
+        if not new:
+            return chosen
+        mark(new)
+        candidates.extend(new)
+        again = select(candidates, selection, scale=scale)
+        if again is chosen:
+            return chosen
+        chosen = again
+    return chosen
+
+
+def _key(shapes: Sequence[sympy.Expr]) -> frozenset[sympy.Expr]:
+    return frozenset(shapes)
+
+
+def _moves(current: list[sympy.Expr], pool: list[sympy.Expr]) -> list[list[sympy.Expr]]:
+    """Each term removed, swapped for a pool term, and each pool term added."""
+    have = set(current)
+    others = [p for p in pool if p not in have]
+    out = [current[:i] + current[i + 1:] for i in range(len(current))]
+    out += [current[:i] + [p] + current[i + 1:] for i in range(len(current)) for p in others]
+    out += [[*current, p] for p in others]
+    return out
+
+
+def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows, kind: str,
+               engine: str) -> Candidate | None:
+    """A move fitted (least squares) on the fit rows, its held-out loss the cross-validated one, its t
+    ratios and VIF measured on the fit rows when the pick asks; None when its expression does not read
+    back as its terms."""
+    a, y, lag = folded.fit_part(shapes)
+    coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    expr = sparse_expression([Feature(f"t{k}", s, engine) for k, s in enumerate(shapes)], coef)
+
+    def predict(X: np.ndarray, shapes: list[sympy.Expr] = shapes, coef: np.ndarray = coef) -> np.ndarray:
+        return expression_columns(shapes, X) @ coef
+
+    if _key(term_shapes(expr)) != _key(shapes) or len(term_shapes(expr)) != len(shapes):
+        return None  # the expression would not read back as these terms (a zero coefficient)
+    c = Candidate(expr, model_size(shapes), loss_fn(y, a @ coef, kind), engine, holdout_loss=cv_loss,
+                  predict=predict)
+    c.measure = lambda: term_identification(a, y, lag)
+    return c

@@ -1,0 +1,78 @@
+"""The picked structure's coefficients refit on the fit and pick rows together (SelectionSettings.refit).
+
+The pick compares candidates fitted on the fit rows by their loss on the pick rows; that is how a
+structure (which terms) is chosen on data its fits never saw. Once it is chosen, the pick rows hold
+information about its coefficients that a fit on the fit rows alone throws away (a fifth of the flight
+beside three fifths). Refitting the chosen terms on both, as the candidates were fitted (least squares,
+then the absolute-error refit for loss 'absolute'), is the usual select-then-refit; the validation rows
+stay untouched, so validation still reports on data used for neither fitting nor picking, and the model
+file's `data.roles_used` says which rows fitted the coefficients.
+
+The refit scales each additive term of the chosen expression (its numeric factor; a term's inner
+constants, such as a hub law's fitted height scale, are kept as the pick chose them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import sympy
+from scipy import sparse
+
+from identification.body_frame import expression_columns
+from identification.candidate import Candidate
+from identification.collinearity import term_shapes
+from identification.library import Feature
+from identification.metrics import loss as loss_fn
+from identification.sparse import LeastSquaresProblem, sparse_expression
+
+Rows = tuple[np.ndarray, np.ndarray, "sparse.spmatrix | None"]  # X (N,16), y (N,), weak operator or None
+
+
+def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterations: int,
+               irls_max_terms: int) -> Candidate | None:
+    """The chosen candidate with each additive term's coefficient refit on every part's rows together
+    (parts: (X (N,16), y (N,) in the target's unit, the weak operator of those rows or None)); None when
+    a term is not finite on those rows, the expression has no terms, or the refit is not finite."""
+    shapes = term_shapes(chosen.expression)
+    if not shapes:
+        return None
+    blocks_a, blocks_b = [], []
+    for X, y, op in parts:
+        if len(X) == 0:
+            continue
+        cols = expression_columns(shapes, X)
+        if not np.all(np.isfinite(cols)):
+            return None
+        if op is not None:
+            cols, y = np.asarray(op @ cols), np.asarray(op @ y)
+        blocks_a.append(cols)
+        blocks_b.append(np.asarray(y, float))
+    if not blocks_a:
+        return None
+    a, b = np.vstack(blocks_a), np.concatenate(blocks_b)
+    problem = LeastSquaresProblem(a, b)
+    active = problem.usable.copy()
+    coef = problem.solve(active)
+    if loss == "absolute" and int(active.sum()) <= irls_max_terms:
+        coef = problem.l1_refit(active, coef, irls_iterations)
+    if not np.all(np.isfinite(coef)):
+        return None
+    expr = sparse_expression([Feature(f"t{k}", s, chosen.engine) for k, s in enumerate(shapes)], coef)
+
+    def predict(X_: np.ndarray, shapes: list[sympy.Expr] = shapes, coef: np.ndarray = coef) -> np.ndarray:
+        return expression_columns(shapes, X_) @ coef
+
+    return Candidate(
+        expression=expr,
+        complexity=chosen.complexity,
+        train_loss=loss_fn(b, a @ coef, loss),
+        engine=chosen.engine,
+        holdout_loss=chosen.holdout_loss,  # the structure's pick loss, as fitted on the fit rows alone
+        predict=predict,
+        weakest_t=chosen.weakest_t,
+        largest_vif=chosen.largest_vif,
+        self_feedback=chosen.self_feedback,
+        self_feedback_se=chosen.self_feedback_se,
+    )

@@ -1,0 +1,131 @@
+"""Blocked K-fold cross-validation as the pick's evidence (identification.cross_validation,
+SelectionSettings.cv_folds): each held-out prediction from a fit without its fold and the gap rows, the
+loss that ranks a true structure over a near-twin on noisy data, and identify's record of it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import sympy
+from synthetic_data import synthetic_dataset
+
+from bridge.errors import UserError
+from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
+from identification.collinearity import term_shapes
+from identification.cross_validation import FoldedRows
+from identification.cv_polish import move_candidate, polish_by_cross_validation
+from identification.engine import EngineSettings
+from identification.engine_settings import load_engine_settings
+from identification.identify import identify
+from identification.pareto import select
+from identification.true_model import random_states
+from identification.weak_form import WeakSettings, weak_operator
+
+S = PRIMITIVE_SYMBOLS
+
+
+def _rows(n: int, seed: int) -> np.ndarray:
+    xi, u = random_states(n, seed)
+    return np.hstack([xi, u])
+
+
+@pytest.mark.parametrize("per_fold", [1, 3])
+def test_each_held_out_prediction_comes_from_a_fit_without_its_fold_and_the_gap(per_fold):
+    X = _rows(900, 3)
+    shapes = [sympy.Integer(1), S["u1"] * S["wz"], S["vb"] * S["wx"]]
+    y = expression_columns(shapes, X) @ np.array([0.3, 2e-3, -0.7])
+    y = y + 0.05 * np.random.default_rng(4).standard_normal(len(y))
+    rows = FoldedRows([(X[:600], y[:600], None, 7), (X[600:], y[600:], None, 7)], 4, per_fold)
+    pred = rows.predictions(shapes)
+    a = expression_columns(shapes, X)
+    bounds = np.linspace(0, 900, 4 * per_fold + 1).round().astype(int)
+    for k in range(4):
+        train, held = np.ones(900, bool), np.zeros(900, bool)
+        for b in range(k, 4 * per_fold, 4):  # fold k: blocks k, k + 4, ...
+            train[max(bounds[b] - 7, 0):bounds[b + 1] + 7] = False
+            held[bounds[b]:bounds[b + 1]] = True
+        coef = np.linalg.lstsq(a[train], y[train], rcond=None)[0]
+        np.testing.assert_allclose(pred[held], a[held] @ coef, rtol=1e-7, atol=1e-9)
+    rows.prepare([S["wy"], *shapes, S["u2"]])  # from the Gram matrices of a pool of terms: the same
+    np.testing.assert_allclose(rows.predictions(shapes), pred, rtol=1e-7, atol=1e-9)
+    direct = FoldedRows(rows.parts, 4, per_fold).predictions(shapes[1:])
+    np.testing.assert_allclose(rows.predictions(shapes[1:]), direct, rtol=1e-7, atol=1e-9)
+
+
+def test_weak_rows_are_folded_after_integration():
+    X = _rows(1200, 5)
+    t = np.arange(1200) * 0.004
+    op = weak_operator(t, WeakSettings(half_window_s=0.05, stride_s=0.02))
+    shapes = [S["u1"] * S["wz"], S["wy"]]
+    y = expression_columns(shapes, X) @ np.array([1e-3, -0.4])
+    rows = FoldedRows([(X, y, op, 5)], folds=5)
+    assert len(rows.y) == op.shape[0]
+    np.testing.assert_allclose(rows.column(shapes[1]), op @ X[:, 10], rtol=1e-12)
+    assert rows.loss(sympy.Add(*shapes), "squared") < 1e-9 * np.std(rows.y)  # exact terms: no error
+
+
+def test_the_cross_validated_loss_ranks_the_true_term_over_its_near_twin():
+    # u wz against u^2 wz with u in a narrow band (rotors near one level): nearly one column
+    rng = np.random.default_rng(11)
+    X = _rows(5000, 7)
+    X[:, 12] = 500.0 + 40.0 * np.sin(np.arange(5000) * 0.01) + 5 * rng.standard_normal(5000)
+    true, twin = S["u1"] * S["wz"], S["u1"] ** 2 * S["wz"]
+    y = 3e-4 * expression_columns([true], X)[:, 0] + 0.02 * rng.standard_normal(5000)
+    rows = FoldedRows([(X[:4000], y[:4000], None, 3), (X[4000:], y[4000:], None, 3)], folds=5)
+    assert rows.loss(true, "absolute") < rows.loss(twin, "absolute")
+
+
+def test_identify_records_the_cross_validation_and_refits_on_the_folds(tmp_path):
+    data = synthetic_dataset(7500, seed=9, noise=0.03)  # 30 s: 6000 fit and pick rows, 0.4 s gaps
+    cv = EngineSettings()  # the default: 5 folds
+    base = replace(cv, selection=replace(cv.selection, cv_folds=0))
+    model = identify(data, engine="sparse", targets=["dwx"], loss="squared", settings=cv, progress=False)
+    record = model.extra["data"]
+    # blocks of at least 4 gaps (400 rows): 14 blocks fit, so 2 per fold
+    assert record["pick_evidence"] == ("blocked 5-fold cross-validation over the fit and pick rows "
+                                       "(2 blocks per fold)")
+    assert record["coefficients_fitted_on"].startswith("fit and pick rows")
+    assert model.targets["dwx"].metrics["validation"]["r2"] > 0.99
+    plain = identify(data, engine="sparse", targets=["dwx"], loss="squared", settings=base, progress=False)
+    assert plain.extra["data"]["pick_evidence"] == "pick rows"
+
+
+def test_a_flight_too_short_for_the_folds_and_their_gaps_is_picked_on_the_pick_rows(capsys):
+    data = synthetic_dataset(1500, seed=9, noise=0.03)  # 6 s: 1200 fit and pick rows, 100-row gaps
+    model = identify(data, engine="sparse", targets=["dwx"], loss="squared", progress=False)
+    assert model.extra["data"]["pick_evidence"] == "pick rows (too few rows for cross-validation)"
+    assert model.extra["data"]["coefficients_fitted_on"] == "fit rows"
+    assert "too few for 5-fold cross-validation with 0.4 s gaps" in capsys.readouterr().err
+    assert model.targets["dwx"].metrics["validation"]["r2"] > 0.99
+
+
+def test_cv_folds_is_read_from_yaml_and_checked(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text("selection:\n  cv_folds: 0\n")
+    assert load_engine_settings(path).selection.cv_folds == 0
+    assert EngineSettings().selection.cv_folds == 5
+    path.write_text("selection:\n  cv_folds: 1\n")
+    with pytest.raises(UserError, match="cv_folds"):
+        load_engine_settings(path)
+
+
+def test_the_polish_swaps_in_a_term_another_candidate_found_when_the_folds_prefer_it():
+    # the pick holds u1^2 wz and a constant (a bias); the true u1 wz is only in a candidate without it
+    rng = np.random.default_rng(12)
+    X = _rows(6000, 13)
+    X[:, 12] = 500.0 + 30.0 * np.sin(np.arange(6000) * 0.003) + 5 * rng.standard_normal(6000)
+    one, vb, true, twin = sympy.Integer(1), S["vb"], S["u1"] * S["wz"], S["u1"] ** 2 * S["wz"]
+    y = expression_columns([one, vb, true], X) @ np.array([0.2, -0.4, 3e-4])
+    y = y + 0.05 * rng.standard_normal(6000)
+    rows = FoldedRows([(X[:4800], y[:4800], None, 3), (X[4800:], y[4800:], None, 3)], folds=5)
+    picked = move_candidate([one, vb, twin], rows.loss(one + vb + twin, "absolute"), rows, "absolute", "t")
+    other = move_candidate([vb, true], rows.loss(vb + true, "absolute"), rows, "absolute", "t")
+    candidates = [picked, other]
+    selection = EngineSettings().selection
+    assert select(candidates, selection, scale=rows.scale) is picked
+    final = polish_by_cross_validation(picked, candidates, rows, "absolute", selection, lambda new: None)
+    assert {str(s) for s in term_shapes(final.expression)} == {"1", "vb", "u1*wz"}
+    assert final.holdout_loss < picked.holdout_loss
+    assert len(candidates) > 2  # the moves joined the candidates the model file's front is drawn from
