@@ -55,6 +55,8 @@ def polish_by_cross_validation(
 def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, kind: str,
             selection: SelectionSettings, mark: Callable[[list[Candidate]], None], rounds: int,
             engine: str) -> Candidate:
+    if chosen.holdout_loss is None or not np.isfinite(chosen.holdout_loss):
+        return chosen  # nothing scored: no tolerance to compare moves against
     pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
     for c in candidates:
         for s in term_shapes(c.expression):

@@ -129,3 +129,14 @@ def test_the_polish_swaps_in_a_term_another_candidate_found_when_the_folds_prefe
     assert {str(s) for s in term_shapes(final.expression)} == {"1", "vb", "u1*wz"}
     assert final.holdout_loss < picked.holdout_loss
     assert len(candidates) > 2  # the moves joined the candidates the model file's front is drawn from
+
+
+def test_the_polish_leaves_a_pick_without_a_finite_score_alone():
+    X = _rows(3000, 2)
+    y = expression_columns([S["vb"]], X)[:, 0]
+    rows = FoldedRows([(X, y, None, 3)], folds=5)
+    picked = move_candidate([S["vb"], S["wx"]], float("nan"), rows, "absolute", "t")
+    candidates = [picked]
+    final = polish_by_cross_validation(picked, candidates, rows, "absolute", EngineSettings().selection,
+                                       lambda new: None)
+    assert final is picked and candidates == [picked]
