@@ -70,6 +70,7 @@ class FoldedRows:
             self.dropped.append(np.flatnonzero(drop))
         self._columns: dict[sympy.Expr, np.ndarray] = {}  # sympy expressions hash by structure
         self._index: dict[sympy.Expr, int] = {}  # prepare(): a term's column in the prepared Gram matrices
+        self._pool: _FoldEquations | None = None
 
     @property
     def scale(self) -> float:
@@ -106,15 +107,8 @@ class FoldedRows:
                 cols.append(col)
         if not cols or not len(self.y):
             return
-        a = np.column_stack(cols)
-        size = np.sqrt(np.mean(a * a, axis=0))
-        size[size == 0] = 1.0
-        a = a / size
         self._index = {k: i for i, k in enumerate(keys)}
-        self._scaled = a
-        self._gram, self._rhs = a.T @ a, a.T @ self.y
-        self._dropped_gram = [a[d].T @ a[d] for d in self.dropped]
-        self._dropped_rhs = [a[d].T @ self.y[d] for d in self.dropped]
+        self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped)
 
     def predictions(self, shapes: Sequence[sympy.Expr]) -> np.ndarray:
         """Each row's prediction by the terms refit (least squares) without the row's fold; NaN when a
@@ -122,27 +116,12 @@ class FoldedRows:
         if not len(self.y):
             return np.zeros(0)
         idx = [self._index.get(s) for s in shapes]
-        if all(i is not None for i in idx):  # prepared terms: the Gram matrices' submatrices
-            out = np.empty(len(self.y))
-            sub = np.ix_(idx, idx)
-            grams = np.stack([self._gram[sub] - d[sub] for d in self._dropped_gram])
-            rhs = np.stack([self._rhs[idx] - d[idx] for d in self._dropped_rhs])
-            for held, coef in zip(self.held, _solve(grams, rhs), strict=True):
-                out[held] = self._scaled[np.ix_(held, idx)] @ coef
-            return out
+        if self._pool is not None and all(i is not None for i in idx):  # prepared: submatrices
+            return self._pool.predictions(idx, self.held)
         a = np.column_stack([self.column(s) for s in shapes])
         if not np.all(np.isfinite(a)):
             return np.full(len(self.y), np.nan)
-        size = np.sqrt(np.mean(a * a, axis=0))
-        size[size == 0] = 1.0
-        a = a / size
-        gram, rhs = a.T @ a, a.T @ self.y
-        grams = np.stack([gram - a[d].T @ a[d] for d in self.dropped])
-        rhss = np.stack([rhs - a[d].T @ self.y[d] for d in self.dropped])
-        out = np.empty(len(self.y))
-        for held, coef in zip(self.held, _solve(grams, rhss), strict=True):
-            out[held] = a[held] @ coef
-        return out
+        return _FoldEquations(a, self.y, self.dropped).predictions(list(range(len(shapes))), self.held)
 
     def terms_loss(self, shapes: Sequence[sympy.Expr], kind: str) -> float:
         """The cross-validated loss of a model of these terms; inf when a term is not finite."""
@@ -151,9 +130,30 @@ class FoldedRows:
     def loss(self, expression: sympy.Expr, kind: str) -> float:
         """The cross-validated loss of an expression's terms (module docstring); inf when not finite."""
         shapes = term_shapes(expression)
-        if not shapes or not len(self.y):
-            return float("inf") if shapes else loss_fn(self.y, np.zeros_like(self.y), kind)
-        return self.terms_loss(shapes, kind)
+        return self.terms_loss(shapes, kind) if shapes else loss_fn(self.y, np.zeros_like(self.y), kind)
+
+
+class _FoldEquations:
+    """The normal equations of columns a (M,m), scaled to unit RMS, over all rows and over each fold's
+    dropped rows: a model of any subset of the columns is refit per fold from their submatrices."""
+
+    def __init__(self, a: np.ndarray, y: np.ndarray, dropped: Sequence[np.ndarray]):
+        size = np.sqrt(np.mean(a * a, axis=0))
+        size[size == 0] = 1.0
+        self.a = a / size
+        self.gram, self.rhs = self.a.T @ self.a, self.a.T @ y
+        self.dropped_gram = [self.a[d].T @ self.a[d] for d in dropped]
+        self.dropped_rhs = [self.a[d].T @ y[d] for d in dropped]
+
+    def predictions(self, idx: Sequence[int], held: Sequence[np.ndarray]) -> np.ndarray:
+        """Each held-out row's prediction by columns idx refit without its fold's dropped rows."""
+        sub = np.ix_(idx, idx)
+        grams = np.stack([self.gram[sub] - d[sub] for d in self.dropped_gram])
+        rhs = np.stack([self.rhs[idx] - d[idx] for d in self.dropped_rhs])
+        out = np.empty(len(self.a))
+        for rows, coef in zip(held, _solve(grams, rhs), strict=True):
+            out[rows] = self.a[np.ix_(rows, idx)] @ coef
+        return out
 
 
 def _solve(grams: np.ndarray, rhs: np.ndarray) -> np.ndarray:

@@ -18,16 +18,15 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import sympy
 
-from identification.body_frame import expression_columns
 from identification.candidate import Candidate
 from identification.collinearity import term_identification, term_shapes
 from identification.cross_validation import FoldedRows
 from identification.engine_settings import SelectionSettings
-from identification.library import Feature
 from identification.metrics import loss as loss_fn
 from identification.model_file import complexity
 from identification.pareto import select, within_tolerance
-from identification.sparse import single_threaded_blas, sparse_expression
+from identification.refit import terms_candidate
+from identification.sparse import single_threaded_blas
 
 
 def model_size(shapes: Sequence[sympy.Expr]) -> int:
@@ -117,14 +116,10 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     back as its terms."""
     a, y, lag = folded.fit_part(shapes)
     coef = np.linalg.lstsq(a, y, rcond=None)[0]
-    expr = sparse_expression([Feature(f"t{k}", s, engine) for k, s in enumerate(shapes)], coef)
-
-    def predict(X: np.ndarray, shapes: list[sympy.Expr] = shapes, coef: np.ndarray = coef) -> np.ndarray:
-        return expression_columns(shapes, X) @ coef
-
-    if _key(term_shapes(expr)) != _key(shapes) or len(term_shapes(expr)) != len(shapes):
+    c = terms_candidate(shapes, coef, engine)
+    back = term_shapes(c.expression)
+    if _key(back) != _key(shapes) or len(back) != len(shapes):
         return None  # the expression would not read back as these terms (a zero coefficient)
-    c = Candidate(expr, model_size(shapes), loss_fn(y, a @ coef, kind), engine, holdout_loss=cv_loss,
-                  predict=predict)
+    c.complexity, c.train_loss, c.holdout_loss = model_size(shapes), loss_fn(y, a @ coef, kind), cv_loss
     c.measure = lambda: term_identification(a, y, lag)
     return c

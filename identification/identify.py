@@ -255,12 +255,13 @@ def identify(
                 evidence[name] = "pick rows (too few rows for cross-validation)"
                 folded = None
         if folded is not None:
-            attach_cross_validated(candidates, folded, loss)
+            score = functools.partial(attach_cross_validated, rows=folded, kind=loss)
             per_fold = folded.blocks // folded.folds
             evidence[name] = (f"blocked {folded.folds}-fold cross-validation over the fit and pick rows "
                               f"({per_fold} block{'s' if per_fold > 1 else ''} per fold)")
         else:
-            attach_holdout(candidates, Xp[okp], yp[okp], loss, ops["pick"])
+            score = functools.partial(attach_holdout, X=Xp[okp], y=yp[okp], loss=loss, operator=ops["pick"])
+        score(candidates)
         mark_self_feedback(candidates, X[ok], y[ok], name)
         pick_y = yp[okp] if ops["pick"] is None else ops["pick"] @ yp[okp]
         scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
@@ -269,7 +270,7 @@ def identify(
             chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
                                                 functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
                                                                   target=name))
-        flag = _excitation(name, candidates, (X[ok], y[ok]), (Xp[okp], yp[okp]), loss, ops, settings, folded)
+        flag = _excitation(name, candidates, (X[ok], y[ok]), loss, ops, settings, score)
         if flag is not None:
             chosen, line, not_excited[name] = flag
             candidates.append(chosen)
@@ -411,22 +412,14 @@ def _excitation(
     name: str,
     candidates: list[Candidate],
     fit: tuple[np.ndarray, np.ndarray],
-    pick: tuple[np.ndarray, np.ndarray],
     loss: str,
     ops: dict[str, Any],
     settings: EngineSettings,
-    folded: FoldedRows | None = None,
+    score: Callable[[list[Candidate]], None],
 ) -> tuple[Candidate, str, dict[str, Any]] | None:
     """None when the flight excites the target (identification.pareto.excited); else (the minimal physical
-    model, fitted on the fit rows, a line saying so, the record for the model file). folded: the pick's
-    cross-validation rows, when it cross-validates (else the pick rows score)."""
-
-    def score(cands: list[Candidate]) -> None:
-        if folded is not None:
-            attach_cross_validated(cands, folded, loss)
-        else:
-            attach_holdout(cands, *pick, loss, ops["pick"])
-
+    model, fitted on the fit rows, a line saying so, the record for the model file). score: sets a list of
+    candidates' held-out losses as the pick's evidence does (the pick rows, or the cross-validation)."""
     constant = fit_terms(("1",), *fit, loss, ops["train"])
     score([constant])
     const_loss = float(constant.holdout_loss) if constant.holdout_loss is not None else float("nan")

@@ -59,20 +59,21 @@ def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterati
         coef = problem.l1_refit(active, coef, irls_iterations)
     if not np.all(np.isfinite(coef)):
         return None
-    expr = sparse_expression([Feature(f"t{k}", s, chosen.engine) for k, s in enumerate(shapes)], coef)
+    c = terms_candidate(shapes, coef, chosen.engine)
+    c.complexity, c.train_loss = chosen.complexity, loss_fn(b, a @ coef, loss)
+    c.holdout_loss = chosen.holdout_loss  # the structure's pick loss, as fitted on the fit rows alone
+    c.weakest_t, c.largest_vif = chosen.weakest_t, chosen.largest_vif
+    c.self_feedback, c.self_feedback_se = chosen.self_feedback, chosen.self_feedback_se
+    return c
+
+
+def terms_candidate(shapes: Sequence[sympy.Expr], coef: np.ndarray, engine: str) -> Candidate:
+    """The candidate sum of coef_k x shapes_k (terms in the primitive names or the 16 variables), its
+    prediction from the terms' columns; complexity 0 and losses NaN for the caller to set."""
+    shapes = list(shapes)
+    expr = sparse_expression([Feature(f"t{k}", s, engine) for k, s in enumerate(shapes)], coef)
 
     def predict(X_: np.ndarray, shapes: list[sympy.Expr] = shapes, coef: np.ndarray = coef) -> np.ndarray:
         return expression_columns(shapes, X_) @ coef
 
-    return Candidate(
-        expression=expr,
-        complexity=chosen.complexity,
-        train_loss=loss_fn(b, a @ coef, loss),
-        engine=chosen.engine,
-        holdout_loss=chosen.holdout_loss,  # the structure's pick loss, as fitted on the fit rows alone
-        predict=predict,
-        weakest_t=chosen.weakest_t,
-        largest_vif=chosen.largest_vif,
-        self_feedback=chosen.self_feedback,
-        self_feedback_se=chosen.self_feedback_se,
-    )
+    return Candidate(expr, 0, float("nan"), engine, predict=predict)
