@@ -48,3 +48,22 @@ def test_a_height_law_left_out_of_the_true_structure_hides_the_other_terms():
     assert given_law == {n: [] for n in far}  # noise-free rows, the whole true structure: every term pinned
     without = discovery.unidentifiable_terms(far, train, gravity, weak=False)
     assert any(without.values()), without  # the law in the residual: some true term's t below min_t
+
+
+def test_the_fit_and_pick_rows_leave_out_identifys_validation_block():
+    """fit_and_pick_rows are the rows identify fits and picks on without a validation flight: the training
+    flight minus its validation block (the last fifth) and the gaps beside the blocks, so fewer rows, and a
+    term at the edge of the noise can be identifiable on the whole flight and not on them."""
+    case = discovery.Case("paper vehicle")
+    train = discovery.synthetic(case, 2000, seed=4)
+    own = discovery.fit_and_pick_rows(train)
+    assert 0.7 * len(train) < len(own) < 0.8 * len(train)
+    assert own.t.max() < train.t.min() + 0.8 * (train.t.max() - train.t.min())
+    assert set(np.round(own.t, 9)) <= set(np.round(train.t, 9))
+    body = discovery.body_expressions(discovery.VEHICLE, case.effects)
+    rng = np.random.default_rng(6)
+    train.targets[:, 3:] += 0.11 * rng.standard_normal((len(train), 3))  # rad/s^2: roll damping's t near 5
+    whole = discovery.unidentifiable_terms(body, train, 9.8, weak=False)
+    fewer = discovery.unidentifiable_terms(body, discovery.fit_and_pick_rows(train), 9.8, weak=False)
+    assert "wx" not in whole["dwx"] and "wx" in fewer["dwx"]  # t 5.5+ on the flight, under 4.8 on 3/4 of it
+    assert all(set(whole[n]) <= set(fewer[n]) for n in body)

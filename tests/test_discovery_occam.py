@@ -197,3 +197,33 @@ def test_operon_rows_is_validated_and_read_from_yaml(tmp_path) -> None:
     path = tmp_path / "s.yaml"
     path.write_text("discovery:\n  operon_rows: 0\n")
     assert load_engine_settings(path).discovery.operon_rows == 0
+
+
+def test_an_integer_power_costs_what_abs_costs() -> None:
+    """complexity counts an integer power as one unary operator (x**2, 1/x as abs(x)); a rational power
+    keeps its exponent as a constant node; products and sums are unchanged."""
+    from identification.model_file import complexity
+
+    assert complexity(wz**2) == complexity(sympy.Abs(wz)) == complexity(1 / wz) == 2
+    assert complexity(sympy.sqrt(wz)) == 3
+    assert complexity(wx * wy) == 3
+    assert complexity(2 * wz**2 + wy) == 6  # Add(Mul(2, Pow(wz)), wy)
+    assert complexity(u1**2 * wz) == complexity(sympy.Abs(u1) * wz) == 4
+
+
+def test_within_tolerance_the_lower_loss_decides_between_square_and_abs() -> None:
+    """x**2 and abs(x) are equally simple, so two models that differ only there, both within the pick's
+    tolerance, are told apart by their held-out loss (a node count that charged the exponent preferred
+    abs(x) whatever the data said)."""
+    from identification.candidate import Candidate
+    from identification.model_file import complexity
+
+    def cand(expr: sympy.Expr, h: float) -> Candidate:
+        return Candidate(expression=expr, complexity=complexity(expr), train_loss=h, holdout_loss=h,
+                         weakest_t=20.0)
+
+    sel = SelectionSettings()
+    square, absolute = cand(0.3 * wz**2 - 0.1 * wy, 1.0), cand(0.3 * sympy.Abs(wz) - 0.1 * wy, 1.01)
+    assert select([absolute, square], sel) is square
+    assert select([cand(0.3 * wz**2 - 0.1 * wy, 1.01), cand(0.3 * sympy.Abs(wz) - 0.1 * wy, 1.0)],
+                  sel).expression.has(sympy.Abs)
