@@ -108,7 +108,7 @@ class FoldedRows:
         if not cols or not len(self.y):
             return
         self._index = {k: i for i, k in enumerate(keys)}
-        self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped)
+        self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped, self.held)
 
     def predictions(self, shapes: Sequence[sympy.Expr]) -> np.ndarray:
         """Each row's prediction by the terms refit (least squares) without the row's fold; NaN when a
@@ -117,11 +117,11 @@ class FoldedRows:
             return np.zeros(0)
         idx = [self._index.get(s) for s in shapes]
         if self._pool is not None and all(i is not None for i in idx):  # prepared: submatrices
-            return self._pool.predictions(idx, self.held)
+            return self._pool.predictions(idx)
         a = np.column_stack([self.column(s) for s in shapes])
         if not np.all(np.isfinite(a)):
             return np.full(len(self.y), np.nan)
-        return _FoldEquations(a, self.y, self.dropped).predictions(list(range(len(shapes))), self.held)
+        return _FoldEquations(a, self.y, self.dropped, self.held).predictions(list(range(len(shapes))))
 
     def terms_loss(self, shapes: Sequence[sympy.Expr], kind: str) -> float:
         """The cross-validated loss of a model of these terms; inf when a term is not finite."""
@@ -137,22 +137,27 @@ class _FoldEquations:
     """The normal equations of columns a (M,m), scaled to unit RMS, over all rows and over each fold's
     dropped rows: a model of any subset of the columns is refit per fold from their submatrices."""
 
-    def __init__(self, a: np.ndarray, y: np.ndarray, dropped: Sequence[np.ndarray]):
+    def __init__(self, a: np.ndarray, y: np.ndarray, dropped: Sequence[np.ndarray],
+                 held: Sequence[np.ndarray]):
         size = np.sqrt(np.mean(a * a, axis=0))
         size[size == 0] = 1.0
         self.a = a / size
         self.gram, self.rhs = self.a.T @ self.a, self.a.T @ y
         self.dropped_gram = [self.a[d].T @ self.a[d] for d in dropped]
         self.dropped_rhs = [self.a[d].T @ y[d] for d in dropped]
+        # each fold's held-out rows column-major: a model's columns are then contiguous copies (a gather
+        # by rows and columns at once was most of cv_polish's time)
+        self.held = list(held)
+        self.held_a = [np.asfortranarray(self.a[rows]) for rows in self.held]
 
-    def predictions(self, idx: Sequence[int], held: Sequence[np.ndarray]) -> np.ndarray:
+    def predictions(self, idx: Sequence[int]) -> np.ndarray:
         """Each held-out row's prediction by columns idx refit without its fold's dropped rows."""
         sub = np.ix_(idx, idx)
         grams = np.stack([self.gram[sub] - d[sub] for d in self.dropped_gram])
         rhs = np.stack([self.rhs[idx] - d[idx] for d in self.dropped_rhs])
         out = np.empty(len(self.a))
-        for rows, coef in zip(held, _solve(grams, rhs), strict=True):
-            out[rows] = self.a[np.ix_(rows, idx)] @ coef
+        for rows, a, coef in zip(self.held, self.held_a, _solve(grams, rhs), strict=True):
+            out[rows] = np.ascontiguousarray(a[:, idx]) @ coef  # row-major as before: the same sums
         return out
 
 
