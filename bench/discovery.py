@@ -423,6 +423,11 @@ def fit_and_pick_rows(train: Dataset) -> Dataset:
     return Dataset.concat([roles.fit, roles.pick])
 
 
+def listed_terms(terms: dict[str, list[str]]) -> str:
+    """Per-target term lists as one line: "fz: a, b; dwy: c" (targets without terms left out)."""
+    return "; ".join(f"{k}: {', '.join(v)}" for k, v in terms.items() if v)
+
+
 def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, gravity: float,
                          weak: bool, min_t: float = SelectionSettings().min_t,
                          height_law: dict[str, sympy.Expr] | None = None) -> dict[str, list[str]]:
@@ -720,19 +725,17 @@ def main() -> int:
         hidden = unidentifiable_terms(body_reference, raw_train if weak_case else train, gravity, weak_case,
                                       height_law=height_reference)
         if any(hidden.values()):
-            listed = "; ".join(f"{k}: {', '.join(v)}" for k, v in hidden.items() if v)
             print(f"  true terms this training flight cannot pin down (t < {SelectionSettings().min_t:g} "
-                  f"given the true structure): {listed}")
+                  f"given the true structure): {listed_terms(hidden)}")
         if not args.validation_flight:  # ours keeps its own validation block: fewer rows to fit on
             own = fit_and_pick_rows(raw_train if weak_case else train)
             fewer = unidentifiable_terms(body_reference, own, gravity, weak_case, height_law=height_reference)
             fewer = {k: [t for t in v if t not in hidden.get(k, [])] for k, v in fewer.items()}
             if any(fewer.values()):
-                listed = "; ".join(f"{k}: {', '.join(v)}" for k, v in fewer.items() if v)
                 notes.append(f"{case.name}: true terms the whole training flight pins down but its fit and "
                              f"pick rows alone (identify's own blocks, the validation block held out) do not "
                              f"(t < {SelectionSettings().min_t:g} given the true structure; still counted "
-                             f"missing and held to the coefficient floor): {listed}")
+                             f"missing and held to the coefficient floor): {listed_terms(fewer)}")
                 print(f"  {notes[-1]}")
         case_rows = []
         models_dir = out / "models"

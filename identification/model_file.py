@@ -172,17 +172,8 @@ def check_expression(expr: sympy.Expr) -> None:
 def complexity(expr: sympy.Expr) -> int:
     """The size of an expression: the number of nodes in its sympy tree, an integer power counted as one
     unary operator (x**2 as abs(x): its exponent is no node of its own)."""
-    return sum(0 if (node.is_Integer and isinstance(parent, sympy.Pow) and node is parent.exp) else 1
-               for parent, node in _nodes_with_parents(expr))
-
-
-def _nodes_with_parents(expr: sympy.Expr):
-    """(parent, node) over the tree of expr, preorder; the root's parent is None."""
-    stack = [(None, expr)]
-    while stack:
-        parent, node = stack.pop()
-        yield parent, node
-        stack.extend((node, a) for a in reversed(node.args))
+    nodes = list(sympy.preorder_traversal(expr))
+    return len(nodes) - sum(1 for node in nodes if node.is_Pow and node.exp.is_Integer)
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
