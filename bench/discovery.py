@@ -673,10 +673,11 @@ def main() -> int:
                     help="read the SITL flights a previous run left in --out (same seed and duration)")
     ap.add_argument("--validation-flight", action="store_true",
                     help="give ours the case's validation flight as its validation role (as `quadsr identify "
-                         "--validate-log`), so the whole training flight fits and picks (README, session 14)")
+                         "--validate-log`), so the whole training flight fits and picks "
+                         "(docs/discovery-log.md, session 14)")
     ap.add_argument("--pick-blocks", type=int, default=1,
                     help="ours picks on the training flight's pick time spread over this many blocks "
-                         "(identify --pick-blocks; README, session 14)")
+                         "(identify --pick-blocks; docs/discovery-log.md, session 14)")
     args = ap.parse_args()
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
     names = None if args.cases is None else [c.strip() for c in args.cases.split(",")]

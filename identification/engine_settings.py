@@ -199,7 +199,7 @@ class SelectionSettings:
     # > 1: the pick scores each candidate by blocked K-fold cross-validation over the fit and pick rows
     # (identification.cross_validation) instead of its loss on the pick rows, polishes the pick by one-term
     # moves scored alike (identification.cv_polish) and refits the chosen structure on both; 0: the pick
-    # rows alone (as before session 15; README "Where discovery stands (session 15)")
+    # rows alone (as before session 15; docs/discovery-log.md "Where discovery stands (session 15)")
     cv_folds: int = 5
     # the rows are cut into cv_folds x this many contiguous blocks, dealt to the folds in turn: a fold's
     # held-out rows spread over the flight (one block per fold makes each fold's fit extrapolate to a
