@@ -9,6 +9,9 @@ class UserError(Exception):
         self.hint = hint
         self.exit_code = exit_code
 
+    def __reduce__(self):  # pickled whole (hint, exit code) from a worker (identification.target_pool)
+        return (self.__class__, (self.args[0] if self.args else "", self.hint, self.exit_code))
+
     def __str__(self) -> str:
         text = super().__str__()
         return f"{text}\n  hint: {self.hint}" if self.hint else text

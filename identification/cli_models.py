@@ -161,6 +161,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="model report folder (report.md, fit.png); default: <MODEL>_report beside the model file",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="targets fitted side by side in up to N processes (default: every core this process "
+                        "may use); the model is the same for any N, only the wall time changes")
     fleet = p.add_argument_group("fleets of logs (one model per log, on a Dask cluster)")
     fleet.add_argument("--fleet", action="store_true",
                        help="identify each log on its own (LOG may be a folder or a glob); -o is then the "
@@ -312,6 +315,7 @@ def run_identify(args: argparse.Namespace) -> int:
     from identification.engine_settings import load_engine_settings
     from identification.identify import identify, parse_targets
     from identification.model_file import save_model
+    from identification.target_pool import default_jobs
     from identification.validate import table_markdown
 
     targets = parse_targets(args.targets)
@@ -409,6 +413,7 @@ def run_identify(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         gravity=gravity,
         weak=weak,
+        jobs=default_jobs() if args.jobs is None else args.jobs,
     )
     if motor is not None:
         model.engine["motor_model"] = motor.as_dict()

@@ -20,6 +20,8 @@ the same data, settings and seed give the same model on any machine.
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import functools
 import sys
 import time
@@ -64,6 +66,7 @@ from identification.pareto import admissible, attach_holdout, excited, front_poi
 from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
 from identification.refit import refit_rows
 from identification.self_feedback import mark_self_feedback
+from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
@@ -151,6 +154,7 @@ def identify(
     log: Callable[[str], None] | None = None,
     gravity: float = STANDARD_GRAVITY,
     weak: WeakSettings | None = None,
+    jobs: int = 1,
 ) -> Model:
     """Identify the targets from a Dataset (identification.dataset); returns a learned Model.
 
@@ -163,6 +167,8 @@ def identify(
     (identification.body_frame, with `gravity` in m/s^2) and the NED targets are composed from them.
     weak: fit, pick and report in the weak form (identification.weak_form): every loss and metric is on
     the rows integrated against the test functions (windows inside each role's rows); default engine only.
+    jobs: targets fitted side by side in up to this many forked processes (identification.target_pool); the
+    model is the same for any jobs, only the wall time changes.
     """
     if engine not in ENGINE_NAMES:
         raise UserError(f"unknown engine {engine!r}", hint=f"choose one of {', '.join(ENGINE_NAMES)}")
@@ -172,6 +178,8 @@ def identify(
         raise UserError(f"the budget must be a whole number of generations >= 1 per target, got {budget}")
     if seed < 0:
         raise UserError(f"the seed must be >= 0, got {seed}")
+    if isinstance(jobs, bool) or int(jobs) != jobs or jobs < 1:
+        raise UserError(f"the number of processes (jobs) must be a whole number >= 1, got {jobs}")
     if not (np.isfinite(r2_threshold) and r2_threshold <= 1.0):
         raise UserError(f"the validation R^2 threshold must be a number <= 1, got {r2_threshold}")
     settings = settings or EngineSettings()
@@ -212,7 +220,12 @@ def identify(
     library = build_library(settings.sparse.groups)
     library_names = [f.name for f in library]
     library_columns = feature_matrix(library, X)
-    for name in fit_names:
+    processes, serial_why = processes_for(jobs, len(fit_names))
+    if serial_why:
+        warnings.append(f"note: {len(fit_names)} targets fitted in {serial_why}")
+
+    def fit_target(name: str) -> dict[str, Any]:
+        """One target fitted, picked, polished, refit and checked (in a worker process when processes > 1)."""
         j = (BODY_TARGET_NAMES if body_frame else TARGET_NAMES).index(name)
         y, yp, yv = Yf[:, j], Ypf[:, j], Yvf[:, j]
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
@@ -227,7 +240,7 @@ def identify(
                 "validation": weak_rows(roles.validate.t[okv], roles.validate.flight[okv], weak),
             }
             eng.weak = (ops["train"], ops["pick"])
-        bar = _Bar(name, progress)
+        bar = _Bar(name, progress and processes == 1)
         start = time.perf_counter()
         try:
             candidates = eng.fit(X[ok], y[ok], name, int(budget), seed, loss, bar, (Xp[okp], yp[okp]))
@@ -237,9 +250,8 @@ def identify(
         if not candidates:
             bar.close("no candidates")
             raise UserError(f"engine {engine} found no expression for {name}", hint="raise --budget")
-        new_notes = [n for n in getattr(eng, "notes", []) if n not in engine_notes]
-        engine_notes += new_notes
-        warnings += [f"note: {n}" for n in new_notes]
+        out: dict[str, Any] = {"engine_notes": list(getattr(eng, "notes", [])), "lines": []}
+        lines = out["lines"]  # this target's warnings, after its engine notes
         candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"])
         folded = None
         if settings.selection.cv_folds > 1:  # the pick's evidence: blocked K-fold CV over fit and pick rows
@@ -251,13 +263,13 @@ def identify(
                 line = (f"note: {name}: the fit and pick rows ({len(folded.y)}) are too few for "
                         f"{settings.selection.cv_folds}-fold cross-validation with {gap_s:g} s gaps beside "
                         "each held-out block; the pick rows alone pick")
-                warnings.append(line)
-                evidence[name] = "pick rows (too few rows for cross-validation)"
+                lines.append(line)
+                out["evidence"] = "pick rows (too few rows for cross-validation)"
                 folded = None
         if folded is not None:
             score = functools.partial(attach_cross_validated, rows=folded, kind=loss)
             per_fold = folded.blocks // folded.folds
-            evidence[name] = (f"blocked {folded.folds}-fold cross-validation over the fit and pick rows "
+            out["evidence"] = (f"blocked {folded.folds}-fold cross-validation over the fit and pick rows "
                               f"({per_fold} block{'s' if per_fold > 1 else ''} per fold)")
         else:
             score = functools.partial(attach_holdout, X=Xp[okp], y=yp[okp], loss=loss, operator=ops["pick"])
@@ -272,9 +284,9 @@ def identify(
                                                                   target=name))
         flag = _excitation(name, candidates, (X[ok], y[ok]), loss, ops, settings, score)
         if flag is not None:
-            chosen, line, not_excited[name] = flag
+            chosen, line, out["not_excited"] = flag
             candidates.append(chosen)
-            warnings.append(f"warning: {line}")
+            lines.append(f"warning: {line}")
         if settings.selection.refit_with_pick_rows or folded is not None:
             refit = refit_rows(chosen, [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])], loss,
                                settings.sparse.irls_iterations, settings.sparse.irls_max_terms)
@@ -290,18 +302,18 @@ def identify(
         }
         timings = {k: round(v, 3) for k, v in getattr(eng, "timings", {}).items()}
         timings["total"] = round(elapsed, 3)
-        wall[name] = timings
+        out["timings"] = timings
         if getattr(eng, "gate_r2", None) is not None:
-            gates[name] = float(eng.gate_r2)
+            out["gate"] = float(eng.gate_r2)
         if body_frame:  # the terms as functions of the 16 variables; the library's candidates are in the
             # body frame for the angular accelerations only (its forces are NED), so only they are tried there
             cands = (library_columns[ok], library_names) if name.startswith("dw") else None
             coll = body_collinearity(chosen.expression, X[ok], cands)
         else:
             coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
-        identifiability[name] = coll.as_dict()
-        warnings += describe(name, coll)
-        targets_done[name] = TargetModel(
+        out["identifiability"] = coll.as_dict()
+        lines += describe(name, coll)
+        out["model"] = TargetModel(
             name=name,
             expression=chosen.expression,
             pareto=front_points(candidates, chosen),
@@ -311,13 +323,31 @@ def identify(
         )
         r2v = metrics["validation"]["r2"]
         if not body_frame and not r2v >= r2_threshold:  # body-frame: checked on the composed targets
-            below[name] = float(r2v)
-            warnings.append(
+            out["below"] = float(r2v)
+            lines.append(
                 f"warning: {name}: validation R^2 {r2v:.6f} is below the threshold {r2_threshold:g}"
             )
-        bar.close(f"R2={r2v:.6f} complexity {chosen.complexity} ({chosen.engine})")
-        if log:
-            log(f"{name}: R2 {r2v:.6f}, complexity {chosen.complexity}, {chosen.engine}, {elapsed:.1f} s")
+        out["expression"] = frozen(chosen.expression)  # the model's own tree, as written (target_pool)
+        out["status"] = f"R2={r2v:.6f} complexity {chosen.complexity} ({chosen.engine})"
+        bar.close(out["status"])
+        out["log"] = f"{name}: R2 {r2v:.6f}, complexity {chosen.complexity}, {chosen.engine}, {elapsed:.1f} s"
+        return out
+
+    with contextlib.closing(map_targets(fit_target, fit_names, processes)) as results:
+        for name, out in zip(fit_names, results, strict=True):
+            out["model"] = dataclasses.replace(out["model"], expression=thawed(out["expression"]))
+            new_notes = [n for n in out["engine_notes"] if n not in engine_notes]
+            engine_notes += new_notes
+            warnings += [f"note: {n}" for n in new_notes] + out["lines"]
+            for key, per_target in (("evidence", evidence), ("not_excited", not_excited),
+                                    ("timings", wall), ("gate", gates), ("identifiability", identifiability),
+                                    ("model", targets_done), ("below", below)):
+                if key in out:
+                    per_target[name] = out[key]
+            if processes > 1:  # the workers showed no bars: one line per target as it comes in
+                _Bar(name, progress).close(out["status"])
+            if log:
+                log(out["log"])
     body = None
     if body_frame:
         body = BodyModel(targets_done, primitive_info(), gravity)
@@ -361,6 +391,7 @@ def identify(
         "settings": settings.as_dict(),
         "wall_time_s": wall,
         "total_wall_time_s": round(time.perf_counter() - total_start, 3),
+        "processes": processes,
         "rows": {
             "fit": int(len(roles.fit)),
             "pick": int(len(roles.pick)),

@@ -260,6 +260,7 @@ class PaperPipeline:
         from identification.dataset import load_dataset
         from identification.identify import identify
         from identification.model_file import save_model
+        from identification.target_pool import default_jobs
         from identification.true_model import vehicle_provenance
 
         r = self.run
@@ -269,7 +270,7 @@ class PaperPipeline:
         val = load_dataset(r.files["tlog_paper-validate"])
         r.model = identify(train, engine="default", budget=r.settings.budget, seed=r.seed, validate=val,
                            vehicle=vehicle_provenance(r.vehicle), progress=r.progress,
-                           gravity=r.vehicle.gravity)
+                           gravity=r.vehicle.gravity, jobs=default_jobs())
         r.files["model"] = save_model(r.model, r.out / "model.yaml")
         return f"{len(train)} rows; wrote {r.files['model']}"
 
