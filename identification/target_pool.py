@@ -16,7 +16,6 @@ where fork does not exist, the targets are fitted one after another (`processes_
 
 from __future__ import annotations
 
-import functools
 import multiprocessing
 import os
 import signal
@@ -69,6 +68,14 @@ def thawed(tree: Any) -> sympy.Expr:
     return func(*(thawed(a) for a in args), evaluate=False)
 
 
+def _worker_start() -> None:
+    """In each worker: die with the parent; leave Ctrl-C to the parent (it ends the pool), and let the pool's
+    SIGTERM end the worker (not the parent's inherited handler, which would raise in the job)."""
+    die_with_parent(signal.SIGKILL)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def _run(name: str) -> Any:
     assert _JOB is not None
     return _JOB(name)
@@ -82,8 +89,7 @@ def map_targets(job: Callable[[str], Any], names: Sequence[str], processes: int)
             yield job(name)
         return
     _JOB = job
-    pool = multiprocessing.get_context("fork").Pool(
-        processes, initializer=functools.partial(die_with_parent, signal.SIGKILL))
+    pool = multiprocessing.get_context("fork").Pool(processes, initializer=_worker_start)
     try:
         yield from pool.imap(_run, names)
         pool.close()

@@ -93,25 +93,33 @@ except UserError as e:
     assert run.stdout.strip() == "['FX', 'FY'] no expression for dwy |   hint: raise --budget 3", run.stdout
 
 
-def test_the_workers_die_with_their_parent(tmp_path):
-    pids = tmp_path / "pids"
-    code = f"""
-import os, time
+SLEEPING_WORKERS = """
+import os, sys, time
+from bridge.shutdown import StopSignals
 from identification.target_pool import map_targets
 
 def job(name):
-    with open({str(pids)!r}, "a") as f:
-        f.write(f"{{os.getpid()}}\\n")
+    with open({pids!r}, "a") as f:
+        f.write(str(os.getpid()) + chr(10))
     time.sleep(600)
-
-list(map_targets(job, ["a", "b"], 2))
 """
-    parent = subprocess.Popen([sys.executable, "-c", code], cwd=REPO)
+
+
+def _sleeping_workers(tmp_path: Path, main: str, **popen) -> tuple[subprocess.Popen, list[int]]:
+    """A parent process running `main` after SLEEPING_WORKERS, and its two workers' pids once both run."""
+    pids = tmp_path / "pids"
+    parent = subprocess.Popen([sys.executable, "-c", SLEEPING_WORKERS.format(pids=str(pids)) + main],
+                              cwd=REPO, **popen)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (not pids.exists() or len(pids.read_text().split()) < 2):
+        time.sleep(0.05)
+    workers = [int(p) for p in pids.read_text().split()] if pids.exists() else []
+    return parent, workers
+
+
+def test_the_workers_die_with_their_parent(tmp_path):
+    parent, workers = _sleeping_workers(tmp_path, 'list(map_targets(job, ["a", "b"], 2))')
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and (not pids.exists() or len(pids.read_text().split()) < 2):
-            time.sleep(0.05)
-        workers = [int(p) for p in pids.read_text().split()]
         assert len(workers) == 2 and parent.pid not in workers
     finally:
         parent.send_signal(signal.SIGKILL)
@@ -122,6 +130,32 @@ list(map_targets(job, ["a", "b"], 2))
         alive = [p for p in workers if _running(p)]
         time.sleep(0.05)
     assert not alive, f"workers {alive} outlived their parent"
+
+
+def test_ctrl_c_ends_the_workers_without_a_traceback(tmp_path):
+    """Ctrl-C reaches the whole process group, as in a terminal: the parent (with the CLI's StopSignals) ends
+    the pool and says so once; the workers, which inherited its handlers, print nothing and are gone."""
+    main = """
+with StopSignals(raise_interrupt=True):
+    try:
+        list(map_targets(job, ["a", "b"], 2))
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
+"""
+    parent, workers = _sleeping_workers(tmp_path, main, start_new_session=True, stdout=subprocess.PIPE,
+                                        stderr=subprocess.PIPE, text=True)
+    try:
+        assert len(workers) == 2
+        os.killpg(parent.pid, signal.SIGINT)
+        _, err = parent.communicate(timeout=30)
+    finally:
+        if parent.poll() is None:
+            os.killpg(parent.pid, signal.SIGKILL)
+            parent.wait(10)
+    assert parent.returncode == 130, err
+    assert err.strip() == "interrupted", err
+    assert not [p for p in workers if _running(p)]
 
 
 def _running(pid: int) -> bool:
