@@ -333,7 +333,7 @@ class DiscoveryEngine:
                 break
             rnd += 1
         self.stats["rounds"] = min(rnd + 1, last)
-        if series is not None and not self._keep_law(best, series[0], X, Xh, yh, loss, space.laws[-1]):
+        if series is not None and not self._keep_law(best, series[0], Xh, yh, loss, space.laws[-1]):
             best, n, space, columns, F, Z, pool = series
             del candidates[n:]
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
@@ -390,9 +390,10 @@ class DiscoveryEngine:
         P = columns.primitives(X)
         inputs = P[:, [space.primitives.index(n) for n in HUB_PRIMITIVES]]
         clock = time.perf_counter()
-        # a hub is where it is for every target: a law refit starts where the last one ended, a first law
-        # where the flight's last kept offsets are
-        start = np.asarray(space.laws[-1].offsets) if space.laws else _LAST_HUB.get(_rows_key(X))
+        # a law refit starts where the last one ended, a first law with every hub at the CG: not where
+        # another target's law ended, which would make a target's model depend on which targets its process
+        # fitted before it (identification.target_pool fits them side by side)
+        start = np.asarray(space.laws[-1].offsets) if space.laws else None
         fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
                              s.hub_law_airspeed)
         self.timings["hub_law"] = self.timings.get("hub_law", 0.0) + time.perf_counter() - clock
@@ -409,7 +410,6 @@ class DiscoveryEngine:
         self,
         best: Candidate,
         series_best: Candidate,
-        X: np.ndarray,
         Xh: np.ndarray,
         yh: np.ndarray,
         loss: str,
@@ -430,8 +430,6 @@ class DiscoveryEngine:
             self.stats["hub_law"] = ("fitted, not kept: its rounds' pick no better than the series' on the "
                                      "pick rows")
             return False
-        _LAST_HUB.clear()
-        _LAST_HUB[_rows_key(X)] = np.asarray(law.offsets)
         self.stats["hub_offsets_m"] = [list(r) for r in law.offsets]
         self.stats["hub_law"] = "kept"
         return True
@@ -945,7 +943,6 @@ class DiscoveryEngine:
 
 
 _LAST_SPACE: dict[str, Any] = {}  # the last training data's feature space and matrix (one entry)
-_LAST_HUB: dict[str, np.ndarray] = {}  # the last training data's fitted hub offsets (4, 3) m (one entry)
 
 
 def gp_rows(n: int, limit: int) -> np.ndarray:

@@ -130,6 +130,27 @@ def test_the_engine_refits_its_height_terms_at_the_hubs_by_default():
     assert errors[0] is None or errors[0] > 3 * errors[1], errors
 
 
+def test_a_targets_law_does_not_depend_on_the_targets_fitted_before_it():
+    # identify fits targets one after another or side by side in forked processes (target_pool): a target's
+    # law may not start where another target's law ended in the same process (it once did), or its model
+    # would depend on which process fitted which target
+    X = _rows(2000, 7)
+
+    def fit(target: str) -> tuple[str, dict]:
+        y = body_values(_law(target)[0], X)
+        Xt, yt, Xh, yh = split_holdout(X, y)
+        engine = DiscoveryEngine(DiscoverySettings(hub_law_fits=1))
+        cands = engine.fit(Xt, yt, target, 2, 0, "absolute", None, (Xh, yh))
+        attach_holdout(cands, Xh, yh, "absolute")
+        return str(select(cands, SelectionSettings(), float(np.std(yh))).expression), engine.stats
+
+    alone, stats = fit("dwx")
+    assert stats["hub_law"] == "kept", stats
+    _, fz_stats = fit("fz")
+    assert fz_stats["hub_law"] == "kept", fz_stats  # a law another target could have started from
+    assert fit("dwx")[0] == alone
+
+
 def test_the_law_is_kept_only_on_evidence_against_the_series():
     # a height law at the CG, a monomial of the primitives (u_i^2/h^2): the series holds it exactly, the law
     # can be no better on the pick rows, so it is fitted and not kept
