@@ -118,7 +118,6 @@ from identification.model_file import (  # noqa: E402
     expression_to_string,
     save_model,
 )
-from identification.segmentation import SegmentationSettings  # noqa: E402
 from identification.sparse import single_threaded_blas  # noqa: E402
 from identification.target_pool import default_jobs  # noqa: E402
 from identification.true_model import motor_combinations_sym, true_body_expressions, true_model  # noqa: E402
@@ -249,21 +248,8 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float, gravity: flo
         fly_excitation(profile, tlog, sitl_args=args, seed=s, duration=dur, vehicle=str(path),
                        step_timeout=30.0, log_path=out / f"sitl-{tlog.stem}.log")
         logs.append(load_dataset(tlog, targets=case.targets, gravity=gravity))
-    if not case.open_loop:
-        logs = [without_lift_off(d) for d in logs]
+    # the lift-off's rows go as a user's identify drops them (identification.segmentation: the edge margin)
     return logs[0], logs[1], tlogs
-
-
-def without_lift_off(ds: Dataset) -> Dataset:
-    """ds without the rows within the flight segmentation's edge margin (0.3 s) of each flight's first row,
-    the lift-off (a .tlog's rows start there: the reader drops the rows resting on the ground), as
-    identification.segmentation drops them from real logs. There the vehicle is within centimetres of the
-    ground, below where the SITL holds its ground-effect law (min_height), and a law in 1/h is not
-    defined at h -> 0."""
-    flight = np.zeros(len(ds), int) if ds.flight is None else ds.flight
-    first = {int(f): float(ds.t[flight == f].min()) for f in np.unique(flight)}
-    start = np.array([first[int(f)] for f in flight])
-    return ds.select(ds.t > start + SegmentationSettings().edge_margin_s)
 
 
 # ---------------------------------------------------------------------------------------------------

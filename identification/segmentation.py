@@ -12,8 +12,11 @@ calls airborne):
 - accelerometer: | |specific force| - g | (aux `accel_dev`, m/s^2) above impact_accel marks ground contact
   (touch-down, bumps); rows within impact_margin_s of one go.
 Then rows within edge_margin_s of a ground row (lift-off, touch-down: ground effect and transients) and
-airborne pieces shorter than min_segment_s go. Our .tlog needs none of this: its reader drops the rows
-where the SITL holds the vehicle on its ground plane, from the SITL's own state.
+airborne pieces shorter than min_segment_s go. Our .tlog needs no detector: its reader drops the rows
+where the SITL holds the vehicle on its ground plane, from the SITL's own state, and says how far each
+row is from them (aux `ground_s`), so the edge margin is all that is left to drop. Near the ground just
+after lift-off the vehicle is below where a ground-effect law holds (the SITL clamps it at min_height) and
+at h -> 0 a law in 1/h is not defined: kept, a handful of rows there would own any 1/h feature.
 
 With windows ((start, end) log seconds, by hand) only the rows inside them are kept, no detector drops a
 row, and the detectors' view of those rows is printed as a cross-check.
@@ -228,6 +231,9 @@ def segment(
         lines.append(
             "  .tlog: rows where the SITL holds the vehicle on its ground plane were dropped by the reader"
         )
+        if "ground_s" in ds.aux:
+            near = ds.aux["ground_s"] <= s.edge_margin_s
+            drop(f"within {s.edge_margin_s:g} s of lift-off or touch-down", near)
         return _finish(ds, keep, reasons, lines, gap)
     votes = detector_votes(ds, s)
     voting = [v for v in votes if v.airborne is not None]

@@ -7,7 +7,9 @@ Columns (units and frames as docs/design.md):
 Optional per-row side columns (`aux`, used by segmentation and the motor model, never learned from):
   throttle (N,4) motor commands in [0, 1]; voltage (N,) battery V; landed (N,) the log's land detector
   (1 landed, 0 flying); armed (N,) the log's arming state (1 armed, 0 disarmed); accel_dev (N,) the
-  largest | |specific force| - g | (m/s^2) around the row.
+  largest | |specific force| - g | (m/s^2) around the row; ground_s (N,) the log time (s) from the row to
+  the nearest log row where the vehicle rests on the ground (our .tlog: the SITL holds it on its ground
+  plane; inf: it never rests), so that segmentation can drop the lift-off and touch-down.
 Readers (identification.readers.*) build these; identification.dataset loads them from files.
 """
 
@@ -28,7 +30,7 @@ INPUT_NAMES = ("u1", "u2", "u3", "u4")
 TARGET_NAMES = ("ax", "ay", "az", "dwx", "dwy", "dwz")
 FORMATS = ("tlog", "ulog", "dataflash", "table")
 TARGET_SOURCES = ("truth", "sensors")
-AUX_NAMES = ("throttle", "voltage", "landed", "armed", "accel_dev")
+AUX_NAMES = ("throttle", "voltage", "landed", "armed", "accel_dev", "ground_s")
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from physics_targets import physics_targets, r2
 from identification.dataset import load_dataset
 from identification.excitation import load_profile
 from identification.readers.tlog import read_tlog_dataset
-from identification.segmentation import segment
+from identification.segmentation import SegmentationSettings, segment
 
 pytestmark = pytest.mark.e2e
 
@@ -165,6 +165,13 @@ def test_closed_loop_takes_off_and_holds_its_limits(sitl_on_ground, tmp_path):
     assert "excitation backed off" in run.stdout
     ds = load_dataset(out)
     assert ds.drop_reasons.get("resting on the ground", 0) > 0  # it started on the ground
+    # the lift-off goes as in any log (segmentation's edge margin): within centimetres of the ground, below
+    # where the SITL holds its ground-effect law, a few rows would own any law in 1/h
+    everything = load_dataset(out, airborne=False)
+    margin = SegmentationSettings().edge_margin_s
+    assert (everything.aux["ground_s"] <= margin).sum() > 10
+    assert ds.drop_reasons.get(f"within {margin:g} s of lift-off or touch-down", 0) > 10
+    assert ds.aux["ground_s"].min() > margin
     fit = r2(ds.targets, physics_targets(ds, "plane"))
     assert (fit > 0.9999).all(), fit
     exciting = ds.t >= prof.excitation_start

@@ -20,9 +20,10 @@ the truth targets' rows (identification.step_targets; not moved to the row state
 the truth accelerations).
 
 Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
-free-flight equations do not hold) are dropped, as are rows whose differentiation stencil would span a
-missing step or a resting row. Sensor targets also drop rows whose window holds a clamped IMU sample
-(+-16 g, +-2000 deg/s).
+free-flight equations do not hold) are dropped (aux `ground_s`, each row's time from the nearest of them,
+lets the flight segmentation drop the lift-off and touch-down as it does in other logs), as are rows
+whose differentiation stencil would span a missing step or a resting row. Sensor targets also drop rows
+whose window holds a clamped IMU sample (+-16 g, +-2000 deg/s).
 """
 
 from __future__ import annotations
@@ -213,6 +214,7 @@ def read_tlog_dataset(
     filt.drop("step without rotor speeds", ~np.isfinite(u).all(axis=1))
     resting = (pos[:, 2] >= -1e-3) & (np.abs(vel) <= 1e-3).all(axis=1) & (np.abs(rates) <= 1e-3).all(axis=1)
     filt.drop("resting on the ground", resting)
+    rest_times = t[resting]
 
     euler = euler_from_quaternions(quat)
     usable = ~(no_hsq | no_lpn | resting | ~np.isfinite(u).all(axis=1))
@@ -243,7 +245,8 @@ def read_tlog_dataset(
                 f"(motor lag ratio {ratio:.6f} per step, Tm = {-STEP_S / np.log(ratio) * 1000:.2f} ms, "
                 "estimated from the log)"
             )
-            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
+            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
+                                aux={"ground_s": seconds_to_nearest(t_mid, rest_times)})
         elif central < POINT_ROWS_ABOVE:
             notes.append("truth targets: no motor lag seen in the log's speeds; kink-aware point derivatives")
     raw_steps = sensor_settings is not None and sensor_settings.step_intervals
@@ -266,7 +269,8 @@ def read_tlog_dataset(
                 f"midpoint under the held command (motor lag ratio {ratio:.6f} per step, estimated from the "
                 "log)"
             )
-            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra)
+            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
+                                aux={"ground_s": seconds_to_nearest(t_mid, rest_times)})
     if targets == "truth":
         tgt[idx] = truth_targets(
             t[idx], vel[idx], rates[idx], dt=STEP_S, kinks=None if kinks is None else kinks[idx]
@@ -288,7 +292,19 @@ def read_tlog_dataset(
         filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
 
     state = np.concatenate((pos, vel, euler, rates), axis=1)
-    return make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra)
+    return make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra,
+                        aux={"ground_s": seconds_to_nearest(t, rest_times)})
+
+
+def seconds_to_nearest(t: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """For each time t (s), the distance (s) to the nearest of `times` (s, sorted); inf when none."""
+    t = np.asarray(t, float)
+    if len(times) == 0:
+        return np.full(len(t), np.inf)
+    j = np.searchsorted(times, t)
+    after = np.abs(times[np.minimum(j, len(times) - 1)] - t)
+    before = np.abs(t - times[np.maximum(j - 1, 0)])
+    return np.minimum(after, before)
 
 
 def _interval_filter(filt: RowFilter, times: np.ndarray, rate_hz: float | None, decimation: int) -> RowFilter:
