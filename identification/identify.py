@@ -60,6 +60,7 @@ from identification.engine_settings import SelectionSettings
 from identification.equation_form import equation_text
 from identification.height_law import body_values
 from identification.library import build_library, feature_matrix
+from identification.log_gravity import gravity_note
 from identification.metrics import LOSSES, table_metrics, weak_metrics
 from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel, expression_to_string
 from identification.pareto import admissible, attach_holdout, excited, front_points, select
@@ -220,6 +221,12 @@ def identify(
     library = build_library(settings.sparse.groups)
     library_names = [f.name for f in library]
     library_columns = feature_matrix(library, X)
+    if body_frame:  # truth targets: a g other than the data's would be learned as drag or constant terms
+        estimates = [e for d in (dataset, pick, validate) if d is not None for e in d.gravity_estimates]
+        for file, g, se in estimates:
+            note = gravity_note((g, se), gravity)
+            if note is not None:
+                warnings.append(f"warning: {file}: {note}")
     processes, serial_why = processes_for(jobs, len(fit_names))
     if serial_why:
         warnings.append(f"note: {len(fit_names)} targets fitted in {serial_why}")

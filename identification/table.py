@@ -52,6 +52,8 @@ class Dataset:
     flight: (N,) index into `flights` per row (0 for a single flight).
     aux: optional side columns per row (see the module docstring), carried through select and concat.
     segments: what the flight segmentation kept and why (lines to print; identification.segmentation).
+    gravity_estimates: (file, g, its standard error) m/s^2: the gravity each flight's truth accelerations
+    and accelerometer agree on, where its log holds both (identification.log_gravity).
     u_from_throttle: u is not measured but made from aux `throttle` by a thrust curve (motor_model).
     """
 
@@ -71,6 +73,7 @@ class Dataset:
     aux: dict[str, np.ndarray] = field(default_factory=dict)
     segments: list[str] = field(default_factory=list)
     u_from_throttle: bool = False
+    gravity_estimates: list[tuple[str, float, float]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -162,6 +165,7 @@ class Dataset:
             warnings=[w for d in datasets for w in d.warnings],
             segments=[line for d in datasets for line in d.segments],
             u_from_throttle=all(d.u_from_throttle for d in datasets),
+            gravity_estimates=[e for d in datasets for e in d.gravity_estimates],
             sha256=flights[0].sha256 if len(flights) == 1 else "",
             flight=np.concatenate(flight_ids),
             flights=flights,

@@ -38,7 +38,9 @@ from bridge.errors import UserError
 from bridge.messages import ACCEL_LIMIT, GYRO_LIMIT, RPM_TO_RAD_S, ObservationAssembler
 from bridge.rotations import euler_from_quaternions, rotation_matrix
 from bridge.tlog import read_tlog
+from identification.log_gravity import log_gravity
 from identification.readers import RowFilter, make_dataset, rotor_model
+from identification.segmentation import SegmentationSettings
 from identification.step_targets import motor_lag_ratio, step_interval_rows
 from identification.table import Dataset
 from identification.targets import (
@@ -226,6 +228,11 @@ def read_tlog_dataset(
     if no_sensor:
         extra["step without HIL_SENSOR"] = no_sensor
     g = STANDARD_GRAVITY if gravity is None else float(gravity)  # m/s^2, what the targets add back
+    gravity_estimate = None
+    if targets == "truth":  # sensor targets add back the g that body-frame learning removes: any g is right
+        # not next to ground contact: the ground's reaction there changes within a step
+        airborne = usable & (seconds_to_nearest(t, rest_times) > SegmentationSettings().edge_margin_s)
+        gravity_estimate = log_gravity(t, vel, euler, acc, airborne)
     throttles = _held_throttles(times, commands) if commands else None
     kinks = _command_kinks(times, commands)
     crossing = None if kinks is None else _dilate(kinks, STENCIL_HALF - 1)  # a change inside the span
@@ -245,8 +252,9 @@ def read_tlog_dataset(
                 f"(motor lag ratio {ratio:.6f} per step, Tm = {-STEP_S / np.log(ratio) * 1000:.2f} ms, "
                 "estimated from the log)"
             )
-            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
-                                aux={"ground_s": seconds_to_nearest(t_mid, rest_times)})
+            ground = {"ground_s": seconds_to_nearest(t_mid, rest_times)}
+            return _with_gravity(make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps,
+                                              notes, extra, aux=ground), gravity_estimate)
         elif central < POINT_ROWS_ABOVE:
             notes.append("truth targets: no motor lag seen in the log's speeds; kink-aware point derivatives")
     raw_steps = sensor_settings is not None and sensor_settings.step_intervals
@@ -269,8 +277,9 @@ def read_tlog_dataset(
                 f"midpoint under the held command (motor lag ratio {ratio:.6f} per step, estimated from the "
                 "log)"
             )
-            return make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
-                                aux={"ground_s": seconds_to_nearest(t_mid, rest_times)})
+            ground = {"ground_s": seconds_to_nearest(t_mid, rest_times)}
+            return _with_gravity(make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps,
+                                              notes, extra, aux=ground), gravity_estimate)
     if targets == "truth":
         tgt[idx] = truth_targets(
             t[idx], vel[idx], rates[idx], dt=STEP_S, kinks=None if kinks is None else kinks[idx]
@@ -292,8 +301,15 @@ def read_tlog_dataset(
         filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
 
     state = np.concatenate((pos, vel, euler, rates), axis=1)
-    return make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra,
-                        aux={"ground_s": seconds_to_nearest(t, rest_times)})
+    return _with_gravity(make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra,
+                                      aux={"ground_s": seconds_to_nearest(t, rest_times)}), gravity_estimate)
+
+
+def _with_gravity(ds: Dataset, estimate: tuple[float, float] | None) -> Dataset:
+    """ds with the gravity its log's accelerations and accelerometer agree on (g, standard error m/s^2)."""
+    if estimate is not None:
+        ds.gravity_estimates = [(ds.source, *estimate)]
+    return ds
 
 
 def seconds_to_nearest(t: np.ndarray, times: np.ndarray) -> np.ndarray:
