@@ -94,15 +94,22 @@ def _describe(intervals: list[tuple[float, float]]) -> str:
     return text + (f" (+{len(intervals) - 4} more)" if len(intervals) > 4 else "")
 
 
+def seconds_to_nearest(t: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """For each time t (s), the distance (s) to the nearest of `times` (s, sorted); inf when none."""
+    t = np.asarray(t, float)
+    if len(times) == 0:
+        return np.full(len(t), np.inf)
+    i = np.searchsorted(times, t)
+    before = np.abs(t - times[np.clip(i - 1, 0, len(times) - 1)])
+    after = np.abs(times[np.clip(i, 0, len(times) - 1)] - t)
+    return np.minimum(before, after)
+
+
 def _near(t: np.ndarray, mask: np.ndarray, margin: float) -> np.ndarray:
     """Rows within margin s (in time) of a True row."""
     if margin <= 0 or not mask.any():
         return mask.copy()
-    marks = t[mask]
-    i = np.searchsorted(marks, t)
-    before = np.abs(t - marks[np.clip(i - 1, 0, len(marks) - 1)])
-    after = np.abs(marks[np.clip(i, 0, len(marks) - 1)] - t)
-    return np.minimum(before, after) <= margin
+    return seconds_to_nearest(t, t[mask]) <= margin
 
 
 def _motor_signal(ds: Dataset) -> tuple[np.ndarray, str]:

@@ -40,7 +40,7 @@ from bridge.rotations import euler_from_quaternions, rotation_matrix
 from bridge.tlog import read_tlog
 from identification.log_gravity import log_gravity
 from identification.readers import RowFilter, make_dataset, rotor_model
-from identification.segmentation import SegmentationSettings
+from identification.segmentation import SegmentationSettings, seconds_to_nearest
 from identification.step_targets import motor_lag_ratio, step_interval_rows
 from identification.table import Dataset
 from identification.targets import (
@@ -217,6 +217,7 @@ def read_tlog_dataset(
     resting = (pos[:, 2] >= -1e-3) & (np.abs(vel) <= 1e-3).all(axis=1) & (np.abs(rates) <= 1e-3).all(axis=1)
     filt.drop("resting on the ground", resting)
     rest_times = t[resting]
+    ground_s = seconds_to_nearest(t, rest_times)  # s from each sample to the nearest resting one
 
     euler = euler_from_quaternions(quat)
     usable = ~(no_hsq | no_lpn | resting | ~np.isfinite(u).all(axis=1))
@@ -231,7 +232,7 @@ def read_tlog_dataset(
     gravity_estimate = None
     if targets == "truth":  # sensor targets add back the g that body-frame learning removes: any g is right
         # not next to ground contact: the ground's reaction there changes within a step
-        airborne = usable & (seconds_to_nearest(t, rest_times) > SegmentationSettings().edge_margin_s)
+        airborne = usable & (ground_s > SegmentationSettings().edge_margin_s)
         gravity_estimate = log_gravity(t, vel, euler, acc, airborne)
     throttles = _held_throttles(times, commands) if commands else None
     kinks = _command_kinks(times, commands)
@@ -302,7 +303,7 @@ def read_tlog_dataset(
 
     state = np.concatenate((pos, vel, euler, rates), axis=1)
     return _with_gravity(make_dataset(path, "tlog", targets, t, state, u, tgt, filt, notes, extra,
-                                      aux={"ground_s": seconds_to_nearest(t, rest_times)}), gravity_estimate)
+                                      aux={"ground_s": ground_s}), gravity_estimate)
 
 
 def _with_gravity(ds: Dataset, estimate: tuple[float, float] | None) -> Dataset:
@@ -310,17 +311,6 @@ def _with_gravity(ds: Dataset, estimate: tuple[float, float] | None) -> Dataset:
     if estimate is not None:
         ds.gravity_estimates = [(ds.source, *estimate)]
     return ds
-
-
-def seconds_to_nearest(t: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """For each time t (s), the distance (s) to the nearest of `times` (s, sorted); inf when none."""
-    t = np.asarray(t, float)
-    if len(times) == 0:
-        return np.full(len(t), np.inf)
-    j = np.searchsorted(times, t)
-    after = np.abs(times[np.minimum(j, len(times) - 1)] - t)
-    before = np.abs(t - times[np.maximum(j - 1, 0)])
-    return np.minimum(after, before)
 
 
 def _interval_filter(filt: RowFilter, times: np.ndarray, rate_hz: float | None, decimation: int) -> RowFilter:
