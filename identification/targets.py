@@ -125,6 +125,18 @@ def contiguous_runs(t: np.ndarray, dt: float, rtol: float = 0.05) -> list[slice]
     return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
 
 
+def finite_runs(t: np.ndarray, dt: float, y: np.ndarray) -> list[slice]:
+    """contiguous_runs of t (s) further split at the samples where y (N,) is not finite (a gap's NaN)."""
+    finite = np.isfinite(np.asarray(y, dtype=float))
+    out = []
+    for run in contiguous_runs(t, dt):
+        ok = np.concatenate(([False], finite[run], [False])).astype(np.int8)
+        starts = np.flatnonzero(np.diff(ok) == 1)
+        stops = np.flatnonzero(np.diff(ok) == -1)
+        out += [slice(run.start + int(a), run.start + int(b)) for a, b in zip(starts, stops, strict=True)]
+    return out
+
+
 def five_point_derivative(y: np.ndarray, dt: float) -> np.ndarray:
     """d/dt of uniform samples y (N,...) by the 4th-order central stencil; NaN at the 2 end samples."""
     y = np.asarray(y, dtype=float)
@@ -276,27 +288,29 @@ def _candidates(dt: float, deriv: int, max_window_s: float) -> list[tuple[int, i
     return out
 
 
-def _signal_spectrum(t: np.ndarray, y: np.ndarray, dt: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
-    """(frequencies Hz, one-sided PSD of the signal without its white noise) from Welch over the runs.
+def _signal_spectrum(
+    t: np.ndarray, y: np.ndarray, dt: float, sigma: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(frequencies Hz, one-sided PSD of the signal without its white noise) from Welch over the runs of
+    finite samples (a NaN inside a Welch segment would make every bin NaN); None when no run is long enough.
 
     Bins where the measured PSD does not stand clear of the noise floor (3 standard errors) count as 0.
     """
     from scipy.signal import welch
 
-    runs = [r for r in contiguous_runs(t, dt) if r.stop - r.start >= 64]
+    runs = [r for r in finite_runs(t, dt, y) if r.stop - r.start >= 64]
     nperseg = min(256, max((r.stop - r.start for r in runs), default=0))
     if nperseg < 64:
-        return np.zeros(1), np.zeros(1)
-    total, weight, segments = None, 0, 0
+        return None
+    total, segments = None, 0
     for r in runs:
         if r.stop - r.start < nperseg:
             continue
         f, p = welch(y[r], fs=1.0 / dt, nperseg=nperseg)
         k = max(1, 2 * (r.stop - r.start) // nperseg - 1)
         total = p * k if total is None else total + p * k
-        weight += k
         segments += k
-    psd = total / weight
+    psd = total / segments
     floor = 2.0 * sigma**2 * dt
     signal = np.where(psd > floor * (1.0 + 3.0 / np.sqrt(segments)), psd - floor, 0.0)
     return f, signal
@@ -309,13 +323,18 @@ def choose_savgol(
 
     error^2 = sum over frequency of |H(f) - D(f)|^2 S(f) df + noise^2 sum(c^2): H the filter's response, D
     the ideal one (1, or j 2 pi f for the derivative), S the signal's spectrum (Welch PSD minus the white
-    noise floor), noise the white-noise std from white_noise_std.
+    noise floor), noise the white-noise std from white_noise_std. Without a run of finite samples long
+    enough for a spectrum: the reference (the 5-point stencil, or no smoothing), with its noise error.
     """
     y = np.asarray(y, dtype=float)
-    runs = [r for r in contiguous_runs(t, dt) if r.stop - r.start >= 5]
+    runs = [r for r in finite_runs(t, dt, y) if r.stop - r.start >= 5]
     sigma = float(np.median([white_noise_std(y[r]) for r in runs])) if runs else 0.0
     cands = _candidates(dt, deriv, max_window_s)
-    f, spectrum = _signal_spectrum(t, y, dt, sigma)
+    estimated = _signal_spectrum(t, y, dt, sigma)
+    if estimated is None:  # an unknown spectrum is no licence to smooth (an empty one makes the widest win)
+        n, p, c = cands[0]
+        return SavgolChoice(n, p, sigma, float(sigma * np.sqrt((c**2).sum())))
+    f, spectrum = estimated
     df = f[1] - f[0] if len(f) > 1 else 0.0
     ideal = (2j * np.pi * f) if deriv == 1 else np.ones(len(f))
     best = None

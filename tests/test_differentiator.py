@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from identification.targets import choose_savgol, five_point_derivative, stream_derivative
+from identification.targets import choose_savgol, finite_runs, five_point_derivative, stream_derivative
 
 DT = 0.004  # s, 250 Hz like the SITL's IMU
 
@@ -45,3 +45,31 @@ def test_without_noise_the_derivative_stays_exact():
     assert choice.noise < 3e-4  # 10x below the smallest noise above (a smooth signal's third differences)
     assert choice.polyorder == 4 and choice.window <= 11  # high order, short: little to smooth
     assert _rms(stream_derivative(t, y[:, None])[:, 0], dy) < 1e-3 * np.sqrt(np.mean(dy**2))
+
+
+@pytest.mark.parametrize("where", ["last", "middle"])
+def test_a_gaps_nan_does_not_blind_the_choice_to_the_signal(where):
+    # A resampled IMU stream carries NaN across its gaps. A Welch segment holding one NaN made every bin NaN,
+    # the signal's spectrum read as empty and the widest window won: on a real PX4 flight whose length put
+    # its one NaN (the last sample) inside the last segment, wx' came out smoothed over 362 ms.
+    t, y, _ = _signal(256 * 0.004 + 128 * 0.004 * 30)  # 256 + 128 k: a segment ends on the last
+    noisy = y + 0.003 * np.random.default_rng(5).standard_normal(len(t))
+    clean = choose_savgol(t, noisy, DT, deriv=1)
+    gapped = noisy.copy()
+    gapped[-1 if where == "last" else len(t) // 2] = np.nan
+    choice = choose_savgol(t, gapped, DT, deriv=1)
+    assert (choice.window, choice.polyorder) == (clean.window, clean.polyorder)
+    assert choice.error == pytest.approx(clean.error, rel=0.1)
+
+
+def test_without_a_spectrum_it_does_not_smooth():
+    t, y, _ = _signal(0.2)  # 50 samples: too short for a spectrum
+    choice = choose_savgol(t, y + 0.01 * np.random.default_rng(1).standard_normal(len(t)), DT, deriv=1)
+    assert (choice.window, choice.polyorder) == (5, 4)  # the 5-point stencil, not the widest window
+
+
+def test_finite_runs_split_at_nan_and_at_time_gaps():
+    t = np.concatenate((np.arange(10) * DT, 1.0 + np.arange(5) * DT))
+    y = np.ones(len(t))
+    y[[0, 4, 5]] = np.nan
+    assert [(r.start, r.stop) for r in finite_runs(t, DT, y)] == [(1, 4), (6, 10), (10, 15)]

@@ -101,7 +101,7 @@ def uniform_timeline(streams: list[Stream], rate_hz: float) -> np.ndarray:
     if stop <= start:
         return np.zeros(0)
     n = int(math.floor((stop - start) * rate_hz + 1e-9)) + 1
-    return start + np.arange(n) / rate_hz
+    return np.minimum(start + np.arange(n) / rate_hz, stop)  # rounding must not put the last time past stop
 
 
 # --------------------------------------------------------------------------------------------------------
