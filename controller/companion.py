@@ -258,10 +258,13 @@ class Companion:
         data = log.array()
         if len(data) == 0:
             return None
+        has_truth = np.all(np.isfinite(data[:, [_col("true_x"), _col("true_y"), _col("true_z")]]), axis=1)
+        use_truth = bool(has_truth.any())
+        if use_truth:  # a step whose truth did not arrive is left out, not the whole flight's truth
+            data = data[has_truth]
         t = data[:, _col("t")]
         ref_p = data[:, [_col("ref_x"), _col("ref_y"), _col("ref_z")]]
         truth = data[:, [_col("true_x"), _col("true_y"), _col("true_z")]]
-        use_truth = np.all(np.isfinite(truth))
         pos = truth if use_truth else data[:, [_col("x"), _col("y"), _col("z")]]
         names = ("true_phi", "true_theta", "true_psi") if use_truth else ("phi", "theta", "psi")
         phi, theta, psi = (data[:, _col(n)] for n in names)

@@ -251,13 +251,17 @@ def specific_force_to_ned(accel_frd: np.ndarray, euler: np.ndarray, gravity: flo
     return a
 
 
-def white_noise_std(y: np.ndarray) -> float:
-    """Robust estimate of the white-noise std in a smooth signal y (N,): MAD of its third differences.
+def white_noise_std(y: np.ndarray, runs: list[slice] | None = None) -> float:
+    """Robust estimate of the white-noise std in a smooth signal y (N,): MAD of its third differences,
+    pooled over the runs (slices of y; default all of y) so that each sample weighs the same.
 
     A third difference of white noise has variance 20 sigma^2; a smooth signal's is tiny at high rates,
-    and the median ignores the few samples where the signal has a kink.
+    and the median ignores the few samples where the signal has a kink. A median over runs instead would
+    let a few short scraps between gaps (too short for an estimate: 0) outvote the long runs.
     """
-    d3 = np.diff(np.asarray(y, dtype=float), n=3)
+    y = np.asarray(y, dtype=float)
+    parts = [np.diff(y[r], n=3) for r in (runs if runs is not None else [slice(0, len(y))])]
+    d3 = np.concatenate(parts) if parts else np.zeros(0)
     d3 = d3[np.isfinite(d3)]
     if len(d3) < 10:
         return 0.0
@@ -327,8 +331,7 @@ def choose_savgol(
     enough for a spectrum: the reference (the 5-point stencil, or no smoothing), with its noise error.
     """
     y = np.asarray(y, dtype=float)
-    runs = [r for r in finite_runs(t, dt, y) if r.stop - r.start >= 5]
-    sigma = float(np.median([white_noise_std(y[r]) for r in runs])) if runs else 0.0
+    sigma = white_noise_std(y, finite_runs(t, dt, y))
     cands = _candidates(dt, deriv, max_window_s)
     estimated = _signal_spectrum(t, y, dt, sigma)
     if estimated is None:  # an unknown spectrum is no licence to smooth (an empty one makes the widest win)
@@ -372,14 +375,13 @@ def sensor_targets(
     dw = np.empty_like(gyro)
     for data, out, deriv in ((accel, smoothed, 0), (gyro, dw, 1)):
         for j in range(3):
+            noise = white_noise_std(data[:, j], finite_runs(t, dt, data[:, j]))
             if deriv == 0 and not s.smooth_accel:
-                choice = SavgolChoice(1, 0, white_noise_std(data[:, j]), float("nan"))
+                choice = SavgolChoice(1, 0, noise, float("nan"))
             elif s.window_s is None:
                 choice = choose_savgol(t, data[:, j], dt, deriv, s.max_window_s)
             else:
-                choice = SavgolChoice(
-                    s.window_samples(dt), s.polyorder, white_noise_std(data[:, j]), float("nan")
-                )
+                choice = SavgolChoice(s.window_samples(dt), s.polyorder, noise, float("nan"))
             coeffs = (
                 np.ones(1)
                 if choice.window == 1
@@ -429,9 +431,9 @@ def stream_derivative(
         coeffs = savgol_coeffs(n, order, deriv=1, delta=dt, use="dot")
         for a, b, grid, yg in pieces:
             d = _savgol_1d(yg[:, j], coeffs)
-            ok = np.isfinite(d)
-            if ok.sum() < 2:
-                continue
-            inside = (t[a:b] >= grid[ok][0]) & (t[a:b] <= grid[ok][-1])
-            out[a:b, j][inside] = np.interp(t[a:b][inside], grid[ok], d[ok])
+            # back at the stream's times, only between two grid points that both have a derivative: a
+            # straight line across a hole (NaN samples, a window's edge) would be a made-up target
+            k = np.clip(np.searchsorted(grid, t[a:b]), 1, len(grid) - 1)
+            inside = np.isfinite(d[k - 1]) & np.isfinite(d[k]) & (t[a:b] >= grid[0]) & (t[a:b] <= grid[-1])
+            out[a:b, j][inside] = np.interp(t[a:b][inside], grid, np.nan_to_num(d))
     return out

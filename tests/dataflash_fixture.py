@@ -206,11 +206,13 @@ def write_flight(
     with_pos: bool = True,
     with_att: bool = True,
     time0_us: int = 5_000_000,
+    esc_silent: tuple[int, float] | None = None,
 ) -> Path:
     """Write a synthetic flight as an ArduCopter DataFlash log.
 
     channel_of_motor: the output channel (1-based) of motors 1..4 (PX4/ArduPilot Quad-X numbering); written
     as SERVOn_FUNCTION = 33..36 parameters, and ESC instances follow the channels (instance = channel - 1).
+    esc_silent: (channel, s of flight time): that channel's ESC telemetry stops then (a lost wire).
     """
     w = DataFlashWriter(path)
     for name in MESSAGES:
@@ -255,6 +257,8 @@ def write_flight(
             w.write("RCOU", TimeUS=tu, **pwm)
         if with_esc and k % esc_every == 0:
             for ch in sorted(motor_of_channel):
+                if esc_silent is not None and ch == esc_silent[0] and tk >= esc_silent[1]:
+                    continue
                 rpm = flight.u[k, motor_of_channel[ch]] * 60.0 / (2.0 * math.pi)
                 w.write("ESC", TimeUS=tu, Instance=ch - 1, RPM=rpm, RawRPM=rpm, Volt=16.0, Curr=5.0, Temp=30)
         if k % 25 == 0:

@@ -172,3 +172,15 @@ def test_logs_with_and_without_rotor_speeds_do_not_mix(flight, binlog, tmp_path)
     assert "--motor-curve" in str(info.value)
     both = load_datasets([binlog, no_esc], airborne=False, motor_curve="fang-chen-buaa")
     assert len(both.flights) == 2 and not both.u_from_throttle
+
+
+def test_a_motor_whose_esc_telemetry_stops_is_not_held_at_its_last_rpm(flight, tmp_path):
+    # ArduPilot writes an ESC record only with new telemetry: a motor whose wire broke has no record in the
+    # later batches, and carrying its last rpm for the rest of the log would make up rotor speeds
+    path = write_flight(tmp_path / "lost.bin", flight, channel_of_motor=CHANNELS, esc_every=5,
+                        esc_silent=(CHANNELS[2], 1.5))
+    ds = load_dataset(path)
+    assert ds.t.max() < T0 + 1.5 + 0.1, ds.t.max()  # 4 of that ESC's 20 ms intervals at most
+    assert ds.drop_reasons.get("NaN in states or rotor speeds", 0) > 300
+    _, u, _ = truth_rows(flight, ds)
+    assert np.abs(ds.u[:, 2] - u[:, 2]).max() < 10.0

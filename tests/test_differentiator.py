@@ -73,3 +73,32 @@ def test_finite_runs_split_at_nan_and_at_time_gaps():
     y = np.ones(len(t))
     y[[0, 4, 5]] = np.nan
     assert [(r.start, r.stop) for r in finite_runs(t, DT, y)] == [(1, 4), (6, 10), (10, 15)]
+
+
+def test_short_scraps_between_gaps_do_not_outvote_the_noise_estimate():
+    # Three logger dropouts 16 samples apart leave two 10-sample scraps between long runs: too short for a
+    # noise estimate of their own (0), they halved a median over runs and the shortest window won.
+    t, y, _ = _signal(30.0)
+    noisy = y + 0.01 * np.random.default_rng(1).standard_normal(len(t))
+    gapped = noisy.copy()
+    for a in (5000, 5016, 5032):
+        gapped[a : a + 6] = np.nan
+    clean, choice = choose_savgol(t, noisy, DT, deriv=1), choose_savgol(t, gapped, DT, deriv=1)
+    assert choice.noise == pytest.approx(0.01, rel=0.1)
+    assert (choice.window, choice.polyorder) == (clean.window, clean.polyorder)
+
+
+def test_the_derivative_is_not_drawn_across_a_hole():
+    # A table's empty cells (a motion-capture dropout) are NaN: the rows beside the hole must get their own
+    # window's derivative or none, never a straight line from one side of the hole to the other.
+    t = np.arange(0.0, 20.0, 0.01)
+    y = np.sin(2 * np.pi * 3.0 * t) + 0.002 * np.random.default_rng(0).standard_normal(len(t))
+    dy = 2 * np.pi * 3.0 * np.cos(2 * np.pi * 3.0 * t)
+    hole = (t >= 10.0) & (t < 10.05)
+    y[hole] = np.nan
+    d = stream_derivative(t, y[:, None])[:, 0]
+    assert not np.isfinite(d[hole]).any()
+    ok = np.isfinite(d)
+    assert ok.sum() > 0.95 * len(t)
+    far = np.abs(t - 10.025) > 0.5
+    assert np.max(np.abs(d - dy)[ok]) < 5.0 * np.max(np.abs(d - dy)[ok & far])

@@ -139,3 +139,37 @@ def test_overshoot_along_the_first_approach_including_a_takeoff_phase():
                         np.full(t.size, 1e-4))
     assert m.overshoot_m == pytest.approx(0.02 * np.hypot(2.0, 4.0), rel=1e-3)
     assert m.max_after_5s_m == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_step_without_truth_is_left_out_not_the_flights_truth(tmp_path):
+    # One step whose truth frame did not arrive switched the whole flight's metrics to the estimator's own
+    # state: a vehicle wandering 0.2 m whose estimate sat on the reference scored 0.
+    import types
+
+    from controller.companion import CSV_COLUMNS, Companion, FlightSettings, StepLog, _col
+
+    def flown(lost_step: int):
+        c = Companion.__new__(Companion)
+        c.settings = FlightSettings(state="sensors", figures=False)
+        c.controller, c.trajectory = types.SimpleNamespace(name="se3"), types.SimpleNamespace(name="hover")
+        out = tmp_path / f"lost{lost_step}"
+        out.mkdir()
+        log = StepLog(out / "steps.csv")
+        for k in range(2500):
+            t = k * DT
+            row = [math.nan] * len(CSV_COLUMNS)
+            values = {"t": t, "ref_x": 0.0, "ref_y": 0.0, "ref_z": -1.0, "x": 0.0, "y": 0.0, "z": -1.0}
+            zeros = ("phi", "theta", "psi", "true_phi", "true_theta", "true_psi", "ref_yaw", "saturated",
+                     "control_us")
+            values |= dict.fromkeys(zeros, 0.0)
+            if k != lost_step:
+                values |= {"true_x": 0.2 * math.sin(t), "true_y": 0.0, "true_z": -1.0}
+            for name, v in values.items():
+                row[_col(name)] = v
+            log.add(row)
+        log.close()
+        return c._finish(log, out, {}, True, False)
+
+    whole, lost = flown(-1), flown(1234)
+    assert whole.rms_m == pytest.approx(0.138, abs=0.002)
+    assert lost.rms_m == pytest.approx(whole.rms_m, rel=1e-3) and lost.samples == whole.samples - 1

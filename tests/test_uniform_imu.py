@@ -35,3 +35,16 @@ def test_uniform_samples_are_left_as_they_are():
     notes: list[str] = []
     grid, out = uniform_imu(t, values, notes)
     assert grid is t and out is values and not notes
+
+
+def test_one_nan_angle_is_a_local_gap_not_the_rest_of_the_log():
+    # np.unwrap sums its corrections: one NaN sample made every later angle NaN
+    from identification.readers import Stream
+
+    t = np.arange(0.0, 10.0, 0.1)
+    yaw = np.where(t < 5.0, 3.0, -3.0)  # wraps through +-pi at 5 s
+    yaw[20] = np.nan
+    values, _ = Stream("ATT", t, yaw, kind="angle").resample(np.arange(0.0, 9.9, 0.02))
+    lost = ~np.isfinite(values[:, 0])
+    assert 0 < lost.sum() <= 10  # the intervals on either side of t = 2.0 s only
+    assert np.abs(values[-10:, 0] + 3.0).max() < 1e-9

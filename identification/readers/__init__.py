@@ -74,7 +74,10 @@ class Stream:
         if self.kind == "hold":
             out[:] = self.values[lo]
         elif self.kind == "angle":
-            unwrapped = np.unwrap(self.values, axis=0)
+            unwrapped = self.values.copy()  # over the finite samples: a NaN would end np.unwrap's sum
+            for j in range(k):
+                finite = np.isfinite(unwrapped[:, j])
+                unwrapped[finite, j] = np.unwrap(unwrapped[finite, j])
             for j in range(k):
                 out[:, j] = wrap_angle(np.interp(tl, self.t, unwrapped[:, j]))
         elif self.kind == "quaternion":

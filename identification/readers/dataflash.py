@@ -41,7 +41,15 @@ import numpy as np
 from bridge.errors import UserError
 from bridge.geodesy import flat_earth_ned
 from identification.motor_model import ThrustCurve
-from identification.readers import RowFilter, Stream, make_dataset, rotor_model, uniform_imu, uniform_timeline
+from identification.readers import (
+    GAP_FACTOR,
+    RowFilter,
+    Stream,
+    make_dataset,
+    rotor_model,
+    uniform_imu,
+    uniform_timeline,
+)
 from identification.readers.ardupilot_mixer import INPUTS, fit_mixer, loop_rate_outputs
 from identification.table import Dataset
 from identification.targets import (
@@ -163,12 +171,19 @@ def _esc_stream(msgs: list[Any], channels: dict[int, int], path: Path) -> Stream
         motor = channels.get(int(i) + 1)
         if motor is not None:
             speeds[r, motor] = v * RPM_TO_RAD_S
-    # carry the last value of a motor whose record came in another batch
+    # carry the last value of a motor whose record came in another batch, for as long as that motor's
+    # records keep coming (GAP_FACTOR of its own median interval): an ESC whose telemetry stops must not
+    # hold its last rpm for the rest of the log
     for j in range(4):
         col = speeds[:, j]
-        idx = np.where(np.isfinite(col), np.arange(len(col)), 0)
+        have = np.isfinite(col)
+        if have.sum() < 2:
+            continue
+        idx = np.where(have, np.arange(len(col)), 0)
         np.maximum.accumulate(idx, out=idx)
-        speeds[:, j] = np.where(np.isfinite(col[idx]), col[idx], np.nan)
+        max_age = GAP_FACTOR * float(np.median(np.diff(times[have])))
+        fresh = have[idx] & (times - times[idx] <= max_age)
+        speeds[:, j] = np.where(fresh, col[idx], np.nan)
     return Stream("ESC", times, speeds)
 
 
