@@ -154,6 +154,7 @@ class DiscoveryEngine:
             thresholds=min((sparse or SparseSettings()).thresholds, self.settings.thresholds),
         )
         self.name = name
+        self._target: str | None = None
         # weak form (identification.weak_form): (V of the fit rows, V of the holdout rows); set by identify
         self.weak: tuple[Any, Any] | None = None
         self.timings: dict[str, float] = {}
@@ -189,6 +190,7 @@ class DiscoveryEngine:
             raise ValueError(f"loss must be one of {LOSSES}")
         X = np.asarray(X, dtype=float)
         y = np.asarray(y, dtype=float)
+        self._target = target
         if holdout is None:
             cut = int(round(0.8 * len(y)))
             X, Xh, y, yh = X[:cut], X[cut:], y[:cut], y[cut:]
@@ -394,8 +396,10 @@ class DiscoveryEngine:
         # another target's law ended, which would make a target's model depend on which targets its process
         # fitted before it (identification.target_pool fits them side by side)
         start = np.asarray(space.laws[-1].offsets) if space.laws else None
+        arm = {"fx": "force", "fy": "force", "fz": "force", "dwx": "roll", "dwy": "pitch"}.get(self._target) \
+            if s.hub_law_shared else None
         fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
-                             s.hub_law_airspeed)
+                             s.hub_law_airspeed, arm)
         self.timings["hub_law"] = self.timings.get("hub_law", 0.0) + time.perf_counter() - clock
         if fitted is None:
             return None

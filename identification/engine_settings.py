@@ -159,11 +159,12 @@ class DiscoverySettings:
     # terms in the pick, they are refit as one law per target at each rotor's hub height h - r_i.g, the hubs'
     # offsets r_i learned (variable projection, at most hub_law_evaluations function evaluations), powers of
     # 1/H_i up to hub_law_powers; the law joins the pool as one feature in place of the height features,
-    # and rounds go on on its residual; at most hub_law_fits times (0: off, the default). Off by default,
-    # measured (session 10, README): on closed-loop fang-chen-aero (tilts to 0.3 rad at 0.2-3 m) it takes wy's
-    # height law 6.09 -> 0.89 % and the structure 135/8/0 -> 140/3/2, but on sitl ground effect (small tilts,
-    # where the series already holds the law) 36/0/0 becomes 36/0/2 (a constant in dwx and dwy)
-    hub_law_fits: int = 0
+    # and rounds go on on its residual; at most hub_law_fits times (0: off). On by default since session 20,
+    # with hub_law_shared (below): over the whole discovery bench it changes two cases, both for the better
+    # (sitl ground effect 36/0/1 -> 36/0/0, closed-loop fang-chen-aero 134/9/0 -> 137/6/0; README). A law per
+    # rotor (hub_law_shared false) had made sitl ground effect 36/0/1 (a wx' constant) and closed-loop aero's
+    # wy' law 25 % off, which is why it was opt-in before
+    hub_law_fits: int = 1
     hub_law_powers: int = 4
     # the law is kept only when the pick its rounds reach beats the pick the series had reached on the pick
     # rows by more than polish_z standard errors (paired, polish_blocks blocks); else the series' model stays
@@ -174,6 +175,11 @@ class DiscoverySettings:
     # Off by default, measured (session 12, README): on closed-loop fang-chen-aero the laws of fz and dwx
     # 0.39/1.71 % -> 0.28/0.24 %, but dwy 4.90 -> 5.20 %, the structure 137/6/1 -> 136/7/4, CPU +23 %
     hub_law_airspeed: bool = False
+    # one law for every rotor (identical rotors), each rotor's share its moment arm about the CG from the
+    # fitted offsets: 1 for a force (fx, fy, fz), -r_iy for wx', r_ix for wy' (r x F of a thrust along -z,
+    # FRD; dwz keeps a law per rotor). K coefficients in place of 4K: a law per rotor was free to take up
+    # other effects that differ from rotor to rotor (closed-loop fang-chen-aero: wy''s law 25 % off).
+    hub_law_shared: bool = True
 
 
 @dataclass(frozen=True)

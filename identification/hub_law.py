@@ -124,21 +124,35 @@ def fit_hub_law(
     max_evaluations: int = 400,
     start: np.ndarray | None = None,
     airspeed: bool = False,
+    arm: str | None = None,
 ) -> HubLaw | None:
     """The hub law that, beside `rest` (N', m: the model's other terms and a constant), best fits y (N',) in
     least squares. inputs: HUB_PRIMITIVES columns (N, 12) of the fit rows; weak: the weak form's test
     functions (N', N) applied to the law's columns (None: point rows, N' = N). Offsets bounded by the
     flight's median height per component (a hub farther from the CG than the vehicle flies high could not be
     told from the height itself). Budget in function evaluations; start: the offsets (4, 3) m to start from
-    (None: every hub at the CG); airspeed: the hubs' in-plane airspeed terms too. None when no finite fit."""
+    (None: every hub at the CG); airspeed: the hubs' in-plane airspeed terms too; arm: one law shared by the
+    rotors, each rotor's share its arm for "force" (1), "roll" (-r_iy) or "pitch" (r_ix) (None: a law per
+    rotor). None when no finite fit."""
     inputs = np.asarray(inputs, float)
     y = np.asarray(y, float)
     Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
     y_perp = y - Q @ (Q.T @ y)
     scale = float(np.sqrt(np.mean(y_perp**2))) or 1.0
 
+    def arms(r: np.ndarray) -> np.ndarray:
+        """Each rotor's share of the target per unit of its law (4,): 1 (a force), its moment arm -r_y
+        (roll) or r_x (pitch), m: the law is then one per-rotor law, the same for every rotor."""
+        r = r.reshape(4, 3)
+        return {"force": np.ones(4), "roll": -r[:, 1], "pitch": r[:, 0]}[arm]
+
     def law_cols(r: np.ndarray, with_airspeed: bool) -> np.ndarray:
         L = hub_columns(inputs, r.reshape(4, 3), powers, with_airspeed)
+        if arm is not None:
+            a = arms(r)
+            blocks = L.shape[1] // (4 * powers)
+            L = np.hstack([sum(a[i] * L[:, (b * 4 + i) * powers:(b * 4 + i + 1) * powers] for i in range(4))
+                           for b in range(blocks)])
         return L if weak is None else np.asarray(weak @ L)
 
     def solve(r: np.ndarray, with_airspeed: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +169,10 @@ def fit_hub_law(
     bound = float(np.median(inputs[:, 0]))
     if not np.isfinite(bound) or bound <= 0.0:
         return None
+    if arm is not None and start is None:
+        # every hub at the CG has no moment arm: a shared torque law starts where the free law ends
+        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations)
+        start = None if free is None else np.asarray(free.offsets)
     x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
     sol = least_squares(lambda r: solve(r)[0] / scale, x0, bounds=(-bound, bound),
                         x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations)
@@ -164,5 +182,8 @@ def fit_hub_law(
     if not np.all(np.isfinite(b)) or not np.all(np.isfinite(residual)):
         return None
     offsets = tuple(tuple(float(v) for v in row) for row in sol.x.reshape(4, 3))
+    if arm is not None:  # the shared law per rotor: rotor i's coefficients are its share times the law's
+        a = arms(sol.x)
+        b = np.concatenate([np.outer(a, block).ravel() for block in b.reshape(-1, powers)])
     rows = [tuple(float(v) for v in row) for row in b.reshape(-1, powers)]
     return HubLaw(offsets, tuple(rows[:4]), tuple(rows[4:]))

@@ -178,10 +178,12 @@ def test_the_law_is_kept_only_on_evidence_against_the_series():
     assert str(select(off, SelectionSettings(), float(np.std(yh))).expression) == str(best.expression)
 
 
-def test_the_copyable_settings_file_turns_the_law_on_and_the_default_is_off():
-    settings = load_engine_settings(REPO / "bench" / "settings" / "hub-law.yaml").discovery
-    assert settings.hub_law_fits == 1 and settings.hub_law_evidence
-    assert DiscoverySettings().hub_law_fits == 0
+def test_the_default_is_the_shared_law_and_the_copyable_files_give_the_earlier_engines():
+    default = DiscoverySettings()
+    assert default.hub_law_fits == 1 and default.hub_law_shared and default.hub_law_evidence
+    per_rotor = load_engine_settings(REPO / "bench" / "settings" / "hub-law.yaml").discovery
+    assert per_rotor.hub_law_fits == 1 and not per_rotor.hub_law_shared
+    assert load_engine_settings(REPO / "bench" / "settings" / "series-law.yaml").discovery.hub_law_fits == 0
     with pytest.raises(UserError, match="hub_law_powers"):
         DiscoveryEngine(DiscoverySettings(hub_law_fits=1, hub_law_powers=0))
 
@@ -202,3 +204,21 @@ def test_the_law_holds_the_ground_on_a_rotors_airspeed_thrust():
         assert law is not None and bool(law.airspeed) == airspeed
         errors[airspeed] = height_law_error(law.expression() + far, truth - far, Xv)
     assert errors[True] < 0.25 * errors[False], errors
+
+
+@pytest.mark.parametrize(("target", "arm"), [("fz", "force"), ("dwx", "roll"), ("dwy", "pitch")])
+def test_one_law_for_every_rotor_with_its_moment_arm(target, arm):
+    # A torque's ground effect is each rotor's thrust law times its arm about the CG (r x F): one law for
+    # identical rotors, their shares from the same offsets that place the hubs. Started at the CG a torque
+    # law has no arm at all, so it starts where a free law per rotor ends.
+    X, Xv = _rows(3000, 0), _rows(1000, 5)
+    truth, far = _law(target)
+    rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+    law = fit_hub_law(primitive_matrix(X, HUB_PRIMITIVES), body_values(truth, X), rest, 3, arm=arm)
+    assert law is not None
+    r = np.asarray(law.offsets)
+    np.testing.assert_allclose(r[:, :2], np.asarray(GROUND_VEHICLE.rotor_arms)[:, :2], atol=5e-3)
+    share = {"force": np.ones(4), "roll": -r[:, 1], "pitch": r[:, 0]}[arm]
+    b = np.asarray(law.coefficients)  # per rotor: its share times the one law
+    np.testing.assert_allclose(b, np.outer(share, b[0] / share[0]), rtol=1e-9, atol=0.0)
+    assert height_law_error(law.expression() + far, truth - far, Xv) < 5e-3
