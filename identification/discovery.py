@@ -270,7 +270,7 @@ class DiscoveryEngine:
             if fit_law:
                 fit_law = False
                 laws += 1
-                added = self._add_hub_law(best, space, columns, F, y, X)
+                added = self._add_hub_law(best, space, columns, F, y, X, pool)
                 if added is not None:
                     # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
                     series = series or (best, len(candidates), space, columns, F, Z, pool)
@@ -379,6 +379,7 @@ class DiscoveryEngine:
         F: np.ndarray,
         y: np.ndarray,
         X: np.ndarray,
+        pool: list[int] | None = None,
     ) -> tuple[FeatureSpace, int, _Columns] | None:
         """The pick's height terms refit as one hub law (identification.hub_law) beside its other terms, the
         law added to a copy of the space: (that space, the law's index, its columns), or None (no
@@ -387,6 +388,7 @@ class DiscoveryEngine:
         s = self.settings
         mask = space.height_features()
         rest_idx = [int(i) for i in self._features.get(id(best), ()) if not mask[int(i)]]
+        rest_idx += [int(i) for i in (pool or ()) if not mask[int(i)] and int(i) not in rest_idx]
         weak = (self.weak or (None, None))[0]
         rest = np.hstack([self._on_fit_rows(np.ones((len(X), 1))), F[:, rest_idx]])
         P = columns.primitives(X)

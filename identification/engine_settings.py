@@ -164,6 +164,8 @@ class DiscoverySettings:
     # (sitl ground effect 36/0/1 -> 36/0/0, closed-loop fang-chen-aero 134/9/0 -> 137/6/0; README). A law per
     # rotor (hub_law_shared false) had made sitl ground effect 36/0/1 (a wx' constant) and closed-loop aero's
     # wy' law 25 % off, which is why it was opt-in before
+    # (the law is fitted beside the pick's terms and the screening pool's features without the height:
+    # closed-loop aero then 142/1/2; docs/discovery-log.md, session 20)
     hub_law_fits: int = 1
     hub_law_powers: int = 4
     # the law is kept only when the pick its rounds reach beats the pick the series had reached on the pick
@@ -174,6 +176,8 @@ class DiscoverySettings:
     # the ground multiplies a rotor's whole thrust, and that grows with its airspeed (translational lift).
     # Off by default, measured (session 12, README): on closed-loop fang-chen-aero the laws of fz and dwx
     # 0.39/1.71 % -> 0.28/0.24 %, but dwy 4.90 -> 5.20 %, the structure 137/6/1 -> 136/7/4, CPU +23 %
+    # Session 20, the shared law fitted beside the pool: closed-loop aero 142/1/2, 6.4 % -> 142/1/0, 4.97 %
+    # (laws 0.12/0.14/0.20 %); the other 22 cases not run with it: a candidate for the default
     hub_law_airspeed: bool = False
     # one law for every rotor (identical rotors), each rotor's share its moment arm about the CG from the
     # fitted offsets: 1 for a force (fx, fy, fz), -r_iy for wx', r_ix for wy' (r x F of a thrust along -z,
