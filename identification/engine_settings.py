@@ -177,7 +177,8 @@ class DiscoverySettings:
     # Off by default, measured (session 12, README): on closed-loop fang-chen-aero the laws of fz and dwx
     # 0.39/1.71 % -> 0.28/0.24 %, but dwy 4.90 -> 5.20 %, the structure 137/6/1 -> 136/7/4, CPU +23 %
     # Session 20, the shared law fitted beside the pool: closed-loop aero 142/1/2, 6.4 % -> 142/1/0, 4.97 %
-    # (laws 0.12/0.14/0.20 %); the other 22 cases not run with it: a candidate for the default
+    # (laws 0.12/0.14/0.20 %), but sitl ground effect (no translational lift) 36/0/0 -> 36/0/3 (fz ub^2,
+    # vb^2, wx' ub): off
     hub_law_airspeed: bool = False
     # one law for every rotor (identical rotors), each rotor's share its moment arm about the CG from the
     # fitted offsets: 1 for a force (fx, fy, fz), -r_iy for wx', r_ix for wy' (r x F of a thrust along -z,
