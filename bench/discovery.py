@@ -404,6 +404,7 @@ class Row:
     unidentifiable_missing: list[str] = field(default_factory=list)
     unidentifiable: int = 0  # true terms the training flight cannot pin down, found or not
     scored: str = "point"  # validation R^2 of point targets, or of the weak form (sensor cases)
+    worst: str = ""  # where the largest coefficient error is: "target: term" (or "target: the height law")
 
 
 def fit_and_pick_rows(train: Dataset) -> Dataset:
@@ -504,18 +505,19 @@ def score(case: str, engine: str, model: Model, val: Dataset, reference: Model,
     else:
         comps, frame = compare_models(model, reference), "NED"
     found = sum(sum(1 for r in c.rows if r.status == "both") for c in comps) + law_found
-    errs = [r.relative_error for c in comps for r in c.rows
+    errs = [(r.relative_error, f"{c.target}: {r.term}") for c in comps for r in c.rows
             if r.relative_error is not None and r.term not in hidden.get(c.target, ())]
-    errs += [e for e in law.values() if e is not None]
+    errs += [(e, f"{n}: the height law") for n, e in law.items() if e is not None]
+    worst = max(errs, key=lambda pair: pair[0]) if errs else (float("nan"), "")
     ref_terms = sum(sum(1 for r in c.rows if r.reference is not None) for c in comps) + len(law)
     missing = [f"{c.target}: {t}" for c in comps for t in c.missing if t not in hidden.get(c.target, ())]
     missing += [f"{n}: the height law f(h)" for n, e in law.items() if e is None]
     unseen = [f"{c.target}: {t}" for c in comps for t in c.missing if t in hidden.get(c.target, ())]
     extra = [f"{c.target}: {t}" for c in comps for t in c.extra] + law_extra
     return Row(case, engine, {n: metrics[n]["r2"] for n in TARGET_NAMES}, found, len(missing), len(extra),
-               ref_terms, max(errs) if errs else float("nan"), wall, cpu, frame, missing, extra,
+               ref_terms, worst[0], wall, cpu, frame, missing, extra,
                unidentifiable_missing=unseen, unidentifiable=sum(len(v) for v in hidden.values()),
-               scored="weak" if weak else "point", height_law=law)
+               scored="weak" if weak else "point", height_law=law, worst=worst[1])
 
 
 def height_law_errors(learned: dict[str, sympy.Expr], truth: dict[str, sympy.Expr],
@@ -638,7 +640,8 @@ def report_row(row: Row) -> None:
     """Print one row as it is done (and ours' missing and extra terms)."""
     print(f"  {row.engine}: lowest R^2 {min(row.r2.values()):.6f} ({row.scored}), terms {row.found}/"
           f"{row.missing}/{row.extra} of {row.reference_terms} ({row.frame}; {row.unidentifiable} not "
-          f"identifiable from the flight), coef. error {row.max_error:.2e}, {row.wall_s:.1f} s wall, "
+          f"identifiable from the flight), coef. error {row.max_error:.2e}"
+          f"{f' ({row.worst})' if row.worst else ''}, {row.wall_s:.1f} s wall, "
           f"{row.cpu_s:.1f} s CPU", flush=True)
     if row.engine.startswith("discovery") and (row.missing_terms or row.extra_terms):
         print(f"    missing: {', '.join(row.missing_terms) or '-'}\n"

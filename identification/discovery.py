@@ -264,6 +264,7 @@ class DiscoveryEngine:
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
         series: tuple | None = None  # the state the first hub law was added to
+        before: tuple | None = None  # the state the last hub law was added to
         rnd, last = 0, max(s.rounds, 1)  # rounds run while rnd < last (a hub law adds rounds)
         while rnd < last:
             law_now = False
@@ -273,7 +274,8 @@ class DiscoveryEngine:
                 added = self._add_hub_law(best, space, columns, F, y, X, pool)
                 if added is not None:
                     # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
-                    series = series or (best, len(candidates), space, columns, F, Z, pool)
+                    before = (best, len(candidates), space, columns, F, Z, pool)
+                    series = series or before
                     space, law, columns = added
                     F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
                     Z = np.hstack([Z, _standardized(F[:, [law]])])
@@ -335,6 +337,12 @@ class DiscoveryEngine:
                 break
             rnd += 1
         self.stats["rounds"] = min(rnd + 1, last)
+        # a refit law (its rounds started from the last law's pick) is kept only when its rounds beat that
+        # pick, and the first law only when the model then beats the series'
+        if before is not series and not self._keep_law(best, before[0], Xh, yh, loss, space.laws[-1],
+                                                       "hub_law_refit"):
+            best, n, space, columns, F, Z, pool = before
+            del candidates[n:]
         if series is not None and not self._keep_law(best, series[0], Xh, yh, loss, space.laws[-1]):
             best, n, space, columns, F, Z, pool = series
             del candidates[n:]
@@ -401,7 +409,7 @@ class DiscoveryEngine:
         arm = {"fx": "force", "fy": "force", "fz": "force", "dwx": "roll", "dwy": "pitch"}.get(self._target) \
             if s.hub_law_shared else None
         fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
-                             s.hub_law_airspeed, arm)
+                             s.hub_law_airspeed or (s.hub_law_refit_airspeed and bool(space.laws)), arm)
         self.timings["hub_law"] = self.timings.get("hub_law", 0.0) + time.perf_counter() - clock
         if fitted is None:
             return None
@@ -420,6 +428,7 @@ class DiscoveryEngine:
         yh: np.ndarray,
         loss: str,
         law: HubLaw,
+        key: str = "hub_law",
     ) -> bool:
         """Whether the pick of the rounds a hub law was added to is kept over the pick its series had
         reached: with hub_law_evidence only when better on the pick rows by more than polish_z standard
@@ -427,17 +436,18 @@ class DiscoveryEngine:
         beside a pick the series has shaped (terms the series held in its place are missing), so at first
         it is seldom better, and the terms it lets the rounds find are its evidence. A flight whose tilts
         keep the hubs' offsets small against the height has a series as good, and the law's sixteen
-        coefficients then fit the targets' errors: the series stays."""
+        coefficients then fit the targets' errors: the series stays. A refit law is judged the same way
+        against the pick the last law's rounds reached (series_best; key "hub_law_refit" in the stats)."""
         s = self.settings
         t = paired_loss_t(self._pick_rows(yh), self._pick_rows(best.evaluate(Xh)),
                           self._pick_rows(series_best.evaluate(Xh)), loss, s.polish_blocks)
-        self.stats["hub_law_t"] = float(t)
+        self.stats[f"{key}_t"] = float(t)
         if s.hub_law_evidence and not t < -s.polish_z:
-            self.stats["hub_law"] = ("fitted, not kept: its rounds' pick no better than the series' on the "
-                                     "pick rows")
+            against = "the series'" if key == "hub_law" else "the last law's"
+            self.stats[key] = f"fitted, not kept: its rounds' pick no better than {against} on the pick rows"
             return False
         self.stats["hub_offsets_m"] = [list(r) for r in law.offsets]
-        self.stats["hub_law"] = "kept"
+        self.stats[key] = "kept" + (" (with the hubs' airspeed)" if law.airspeed else "")
         return True
 
     def _polish(

@@ -165,8 +165,10 @@ class DiscoverySettings:
     # rotor (hub_law_shared false) had made sitl ground effect 36/0/1 (a wx' constant) and closed-loop aero's
     # wy' law 25 % off, which is why it was opt-in before
     # (the law is fitted beside the pick's terms and the screening pool's features without the height:
-    # closed-loop aero then 142/1/2; docs/discovery-log.md, session 20)
-    hub_law_fits: int = 1
+    # closed-loop aero then 142/1/2; docs/discovery-log.md, session 20). 2 since session 21: the law is refit
+    # once beside the pick the first law's rounds reached (with hub_law_refit_airspeed below), the refit's
+    # rounds kept only on evidence against that pick
+    hub_law_fits: int = 2
     hub_law_powers: int = 4
     # the law is kept only when the pick its rounds reach beats the pick the series had reached on the pick
     # rows by more than polish_z standard errors (paired, polish_blocks blocks); else the series' model stays
@@ -180,6 +182,12 @@ class DiscoverySettings:
     # (laws 0.12/0.14/0.20 %), but sitl ground effect (no translational lift) 36/0/0 -> 36/0/3 (fz ub^2,
     # vb^2, wx' ub): off
     hub_law_airspeed: bool = False
+    # a law refit (the second and later of hub_law_fits, beside the pick the last law's rounds reached) holds
+    # the airspeed part; its rounds are kept only when their pick beats that pick on the pick rows by more
+    # than polish_z standard errors (hub_law_evidence), so a vehicle without translational lift keeps the
+    # law it had. Session 21: closed-loop fang-chen-aero 142/1/2, 6.4 % -> 142/1/0, 2.85 %, sitl ground
+    # effect 36/0/0 either way
+    hub_law_refit_airspeed: bool = True
     # one law for every rotor (identical rotors), each rotor's share its moment arm about the CG from the
     # fitted offsets: 1 for a force (fx, fy, fz), -r_iy for wx', r_ix for wy' (r x F of a thrust along -z,
     # FRD; dwz keeps a law per rotor). K coefficients in place of 4K: a law per rotor was free to take up

@@ -130,10 +130,10 @@ def fit_hub_law(
     least squares. inputs: HUB_PRIMITIVES columns (N, 12) of the fit rows; weak: the weak form's test
     functions (N', N) applied to the law's columns (None: point rows, N' = N). Offsets bounded by the
     flight's median height per component (a hub farther from the CG than the vehicle flies high could not be
-    told from the height itself). Budget in function evaluations; start: the offsets (4, 3) m to start from
-    (None: every hub at the CG); airspeed: the hubs' in-plane airspeed terms too; arm: one law shared by the
-    rotors, each rotor's share its arm for "force" (1), "roll" (-r_iy) or "pitch" (r_ix) (None: a law per
-    rotor). None when no finite fit."""
+    told from the height itself). Budget in function evaluations (0: the offsets stay at `start`); start:
+    the offsets (4, 3) m to start from (None: every hub at the CG); airspeed: the hubs' in-plane airspeed
+    terms too; arm: one law shared by the rotors, each rotor's share its arm for "force" (1), "roll" (-r_iy)
+    or "pitch" (r_ix) (None: a law per rotor). None when no finite fit."""
     inputs = np.asarray(inputs, float)
     y = np.asarray(y, float)
     Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
@@ -174,16 +174,19 @@ def fit_hub_law(
         free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations)
         start = None if free is None else np.asarray(free.offsets)
     x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
-    sol = least_squares(lambda r: solve(r)[0] / scale, x0, bounds=(-bound, bound),
-                        x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations)
+    if max_evaluations > 0:
+        x = least_squares(lambda r: solve(r)[0] / scale, x0, bounds=(-bound, bound),
+                          x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations).x
+    else:  # the offsets as given: only the coefficients fitted
+        x = x0
     # the airspeed terms at the offsets the rotor speeds place: near r = 0 the four hubs' airspeeds are one
     # column, and a fit of the offsets through them would differentiate a rank-deficient projection
-    residual, b = solve(sol.x, airspeed)
+    residual, b = solve(x, airspeed)
     if not np.all(np.isfinite(b)) or not np.all(np.isfinite(residual)):
         return None
-    offsets = tuple(tuple(float(v) for v in row) for row in sol.x.reshape(4, 3))
+    offsets = tuple(tuple(float(v) for v in row) for row in x.reshape(4, 3))
     if arm is not None:  # the shared law per rotor: rotor i's coefficients are its share times the law's
-        a = arms(sol.x)
+        a = arms(x)
         b = np.concatenate([np.outer(a, block).ravel() for block in b.reshape(-1, powers)])
     rows = [tuple(float(v) for v in row) for row in b.reshape(-1, powers)]
     return HubLaw(offsets, tuple(rows[:4]), tuple(rows[4:]))
