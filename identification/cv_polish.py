@@ -24,6 +24,7 @@ from identification.cross_validation import FoldedRows
 from identification.engine_settings import SelectionSettings
 from identification.metrics import loss as loss_fn
 from identification.model_file import complexity
+from identification.paired_loss import paired_loss_t
 from identification.pareto import select, within_tolerance
 from identification.refit import terms_candidate
 from identification.sparse import single_threaded_blas
@@ -80,9 +81,12 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             if np.isfinite(value):
                 scored.append((value, shapes))
         # a move the pick can choose is within its tolerance of the best identified loss, which is at most
-        # the current pick's (whether a move is identified is measured only when the pick asks)
+        # the current pick's (whether a move is identified is measured only when the pick asks), and not
+        # worse than the pick beyond the rows' noise
         limit = within_tolerance(float(chosen.holdout_loss), selection, scale)
+        base, z = folded.predictions(current), selection.cv_polish_z
         new = [c for value, shapes in scored if value <= limit
+               and not _worse(folded, shapes, base, value, float(chosen.holdout_loss), kind, z)
                and (c := move_candidate(shapes, value, folded, kind, engine)) is not None]
         if not new:
             return chosen
@@ -93,6 +97,15 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             return chosen
         chosen = again
     return chosen
+
+
+def _worse(folded: FoldedRows, shapes: list[sympy.Expr], base: np.ndarray, value: float, current: float,
+           kind: str, z: float) -> bool:
+    """Whether a move's cross-validated predictions are worse than the pick's (base) by more than z paired
+    standard errors over the folds' blocks (identification.paired_loss); never with z 0 or a lower loss."""
+    if z <= 0.0 or value <= current:
+        return False
+    return bool(paired_loss_t(folded.y, folded.predictions(shapes), base, kind, folded.blocks) > z)
 
 
 def _key(shapes: Sequence[sympy.Expr]) -> frozenset[sympy.Expr]:

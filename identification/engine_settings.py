@@ -224,6 +224,12 @@ class SelectionSettings:
     # held-out rows spread over the flight (one block per fold makes each fold's fit extrapolate to a
     # regime it never saw, such as the fast fall of an open-loop flight)
     cv_blocks_per_fold: int = 6
+    # the cross-validated polish (identification.cv_polish) takes no one-term move whose held-out
+    # predictions are worse than the pick's by more than this many paired standard errors (paired_loss_t
+    # over the folds' blocks), though within the pick's tolerance: a term the flight pins down is not
+    # dropped for being small (closed-loop fang-chen-aero's fz: wx*wz, 5 % of the cross-validated loss at
+    # t 4, under the tolerance's absolute part). 0: off (the tolerance alone, as before session 21)
+    cv_polish_z: float = 2.0
 
 
 @dataclass(frozen=True)

@@ -11,10 +11,11 @@ import sympy
 
 from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS
-from identification.discovery import DiscoveryEngine, _Columns, check_settings, paired_loss_t, term_removals
+from identification.discovery import DiscoveryEngine, _Columns, check_settings, term_removals
 from identification.effects_physics import Effects, flight_rows
 from identification.engine import split_holdout
 from identification.engine_settings import DiscoverySettings, SelectionSettings, load_engine_settings
+from identification.paired_loss import paired_loss_t
 from identification.pareto import attach_holdout, pick_limit, select, within_tolerance
 
 wx, wy, wz, u1 = (PRIMITIVE_SYMBOLS[n] for n in ("wx", "wy", "wz", "u1"))

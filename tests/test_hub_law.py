@@ -185,6 +185,8 @@ def test_the_default_is_the_shared_law_and_the_copyable_files_give_the_earlier_e
     per_rotor = load_engine_settings(REPO / "bench" / "settings" / "hub-law.yaml").discovery
     assert per_rotor.hub_law_fits == 1 and not per_rotor.hub_law_shared
     assert load_engine_settings(REPO / "bench" / "settings" / "series-law.yaml").discovery.hub_law_fits == 0
+    once = load_engine_settings(REPO / "bench" / "settings" / "shared-law-once.yaml").discovery
+    assert once.hub_law_fits == 1 and not once.hub_law_refit_airspeed and once.hub_law_shared
     with pytest.raises(UserError, match="hub_law_powers"):
         DiscoveryEngine(DiscoverySettings(hub_law_fits=1, hub_law_powers=0))
 
