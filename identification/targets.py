@@ -268,6 +268,11 @@ def white_noise_std(y: np.ndarray, runs: list[slice] | None = None) -> float:
     return robust_sigma(d3) / float(np.sqrt(20.0))
 
 
+def run_noise_std(t: np.ndarray, dt: float, y: np.ndarray) -> float:
+    """white_noise_std of y (N,) over its runs of finite, evenly spaced samples (finite_runs; t, dt in s)."""
+    return white_noise_std(y, finite_runs(t, dt, y))
+
+
 def _savgol_1d(y: np.ndarray, coeffs: np.ndarray) -> np.ndarray:
     out = np.full(len(y), np.nan)
     n = len(coeffs)
@@ -331,7 +336,7 @@ def choose_savgol(
     enough for a spectrum: the reference (the 5-point stencil, or no smoothing), with its noise error.
     """
     y = np.asarray(y, dtype=float)
-    sigma = white_noise_std(y, finite_runs(t, dt, y))
+    sigma = run_noise_std(t, dt, y)
     cands = _candidates(dt, deriv, max_window_s)
     estimated = _signal_spectrum(t, y, dt, sigma)
     if estimated is None:  # an unknown spectrum is no licence to smooth (an empty one makes the widest win)
@@ -375,13 +380,13 @@ def sensor_targets(
     dw = np.empty_like(gyro)
     for data, out, deriv in ((accel, smoothed, 0), (gyro, dw, 1)):
         for j in range(3):
-            noise = white_noise_std(data[:, j], finite_runs(t, dt, data[:, j]))
             if deriv == 0 and not s.smooth_accel:
-                choice = SavgolChoice(1, 0, noise, float("nan"))
+                choice = SavgolChoice(1, 0, run_noise_std(t, dt, data[:, j]), float("nan"))
             elif s.window_s is None:
                 choice = choose_savgol(t, data[:, j], dt, deriv, s.max_window_s)
             else:
-                choice = SavgolChoice(s.window_samples(dt), s.polyorder, noise, float("nan"))
+                choice = SavgolChoice(s.window_samples(dt), s.polyorder, run_noise_std(t, dt, data[:, j]),
+                                      float("nan"))
             coeffs = (
                 np.ones(1)
                 if choice.window == 1
