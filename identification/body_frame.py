@@ -43,6 +43,7 @@ from identification.model_file import (
     TargetModel,
     expression_to_string,
 )
+from identification.rows_cache import cached
 
 STANDARD_GRAVITY = 9.80665  # m/s^2, when the vehicle's is not known
 BODY_FORCE_NAMES: tuple[str, ...] = ("fx", "fy", "fz")
@@ -135,12 +136,19 @@ def _compiled(expr: sympy.Expr) -> Callable[..., Any]:
 
 
 def expression_columns(exprs: Sequence[sympy.Expr], X: np.ndarray) -> np.ndarray:
-    """Expressions in the 16 variables and/or the primitive names evaluated on X (N,16): (N, len(exprs))."""
+    """Expressions in the 16 variables and/or the primitive names evaluated on X (N,16): (N, len(exprs)).
+
+    Each expression's column is computed once per rows array (identification.rows_cache)."""
     X = np.asarray(X, dtype=float)
-    values = [*X.T, *primitive_matrix(X, _DERIVED).T]
-    with np.errstate(all="ignore"):
-        cols = [_compiled(e)(*values) for e in exprs]
-    return np.column_stack([np.broadcast_to(np.asarray(c, float), (len(X),)) for c in cols])
+    values: list[np.ndarray] = []
+
+    def column(e: sympy.Expr) -> np.ndarray:
+        if not values:
+            values.extend([*X.T, *cached(X, _DERIVED, lambda: primitive_matrix(X, _DERIVED)).T])
+        with np.errstate(all="ignore"):
+            return np.array(np.broadcast_to(np.asarray(_compiled(e)(*values), float), (len(X),)))
+
+    return np.column_stack([cached(X, e, lambda e=e: column(e)) for e in exprs])
 
 
 def to_variables(expr: sympy.Expr) -> sympy.Expr:

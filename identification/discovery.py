@@ -996,7 +996,9 @@ class _Basis:
     Candidates are tested in order, in blocks: a block is projected out of the basis as it stood with one
     matrix product (twice: classical Gram-Schmidt loses orthogonality once), then each of its columns out of
     the block's columns accepted before it; mathematically the column-by-column test, at BLAS-3 speed. The
-    basis lives in a preallocated buffer (grown by doubling) rather than being copied on every addition."""
+    basis lives in a preallocated buffer (grown by doubling) rather than being copied on every addition.
+    The basis only grows, so a column found dependent on it stays dependent: it is not tested again (the
+    screening's later rounds offer hundreds of features the pool already spans)."""
 
     _BLOCK = 32  # candidates projected together
 
@@ -1005,6 +1007,7 @@ class _Basis:
         self._q[:, 0] = 1.0 / np.sqrt(n)
         self.k = 1  # columns in use
         self.tol = tol
+        self._dependent: set[int] = set()  # column indices found dependent on the basis
 
     @property
     def q(self) -> np.ndarray:
@@ -1015,7 +1018,7 @@ class _Basis:
         """Add, in order, each column F[:, i] (i in indices) that is not (numerically) a combination of the
         basis and the columns added before it, until `limit` are added; the indices added."""
         added: list[int] = []
-        indices = np.asarray(indices, dtype=int)
+        indices = np.asarray([i for i in indices if int(i) not in self._dependent], dtype=int)
         for start in range(0, len(indices), self._BLOCK):
             if limit is not None and len(added) >= limit:
                 break
@@ -1039,6 +1042,7 @@ class _Basis:
                         col = col - mine @ (mine.T @ col)
                 rest = float(np.linalg.norm(col))
                 if rest <= self.tol:
+                    self._dependent.add(int(idx[j]))
                     continue
                 self._append(col / rest)
                 added.append(int(idx[j]))

@@ -1,4 +1,4 @@
-"""Independent targets fitted side by side: forked worker processes, results in the targets' order.
+"""Independent targets fitted side by side: forked worker processes, each result as it comes in.
 
 identify fits each target from the same rows with the same seed and nothing shared, so a target's model is
 the same whether it is fitted alone, after another or beside one; only the wall time changes. The workers
@@ -76,22 +76,28 @@ def _worker_start() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-def _run(name: str) -> Any:
+def _run(name: str) -> tuple[str, Any]:
     assert _JOB is not None
-    return _JOB(name)
+    return name, _JOB(name)
 
 
-def map_targets(job: Callable[[str], Any], names: Sequence[str], processes: int) -> Iterator[Any]:
-    """job(name) for each name, yielded in the order of names; on `processes` forked workers when > 1."""
+def map_targets(job: Callable[[str], Any], names: Sequence[str], processes: int,
+                first: Sequence[str] = ()) -> Iterator[tuple[str, Any]]:
+    """(name, job(name)) for each name: on `processes` forked workers when > 1, as each finishes; else in
+    the order of names, one after another.
+
+    first: names the workers start before the others (the targets expected to take longest: started last,
+    one of them would leave the other workers idle at the end)."""
     global _JOB
     if processes <= 1:
         for name in names:
-            yield job(name)
+            yield name, job(name)
         return
+    started = [n for n in first if n in names] + [n for n in names if n not in first]
     _JOB = job
     pool = multiprocessing.get_context("fork").Pool(processes, initializer=_worker_start)
     try:
-        yield from pool.imap(_run, names)
+        yield from pool.imap_unordered(_run, started)
         pool.close()
     finally:
         pool.terminate()

@@ -84,13 +84,38 @@ def job(name):
 
 got = []
 try:
-    for r in map_targets(job, ["fx", "fy", "dwy", "dwz"], 2):
-        got.append(r)
+    for name, r in map_targets(job, ["fx", "fy", "dwy", "dwz"], 2):
+        assert r == name.upper()
+        got.append(name)
 except UserError as e:
-    print(got, str(e).replace(chr(10), " | "), e.exit_code)
+    print(",".join(got), "/", str(e).replace(chr(10), " | "), e.exit_code)
 """
     run = _python(code)
-    assert run.stdout.strip() == "['FX', 'FY'] no expression for dwy |   hint: raise --budget 3", run.stdout
+    got, error = run.stdout.strip().split(" / ")
+    assert error == "no expression for dwy |   hint: raise --budget 3", run.stdout
+    assert "dwy" not in got.split(","), run.stdout  # the results before it came back whole
+
+
+def test_the_targets_named_first_start_first_and_every_result_comes_back_with_its_name(tmp_path):
+    started = tmp_path / "started"
+    code = f"""
+import os, time
+from identification.target_pool import map_targets
+
+def job(name):
+    fd = os.open({str(started)!r}, os.O_WRONLY | os.O_APPEND | os.O_CREAT)
+    os.write(fd, (name + chr(10)).encode())
+    os.close(fd)
+    time.sleep(0.8)
+    return name * 2
+
+print(sorted(map_targets(job, ["fx", "fy", "fz", "dwx"], 2, first=("dwx", "fz", "az"))))
+"""
+    run = _python(code)
+    assert run.stdout.strip() == "[('dwx', 'dwxdwx'), ('fx', 'fxfx'), ('fy', 'fyfy'), ('fz', 'fzfz')]"
+    # two workers take the queue's first two together, then the next two once those are done
+    order = started.read_text().split()
+    assert set(order[:2]) == {"dwx", "fz"} and set(order[2:]) == {"fx", "fy"}, order
 
 
 SLEEPING_WORKERS = """
