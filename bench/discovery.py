@@ -49,13 +49,18 @@ the training flight cannot pin down even given the true structure
 unidentifiable_terms) is counted apart ("not identifiable"): not missing when left out, not held to the
 coefficient floor; ours lists the ones it left out. With realistic sensors these are the terms below the
 noise (on fang-chen-aero's paper-train flight: fz's w^2, vb*wz and wx*wz, wy''s wx^2 and wy^2); with
-ideal sensors there are none or next to none. Without --validation-flight ours keeps the training flight's
-last fifth to validate on, so it fits and picks on fewer rows; the true terms the whole flight pins down but
-those rows (fit_and_pick_rows) do not are listed per case in the results md, and are still counted missing
-when left out and held to the coefficient floor. Sensor cases: the reference adds the accelerometer's bias as
-the constants of fx fy fz (it is in the data), the targets add the vehicle's gravity (the g its
-accelerometer measures against), and every engine's model is scored in the weak form on the validation
-flight's raw sensor targets ("(weak)" in the table), so ours and the baselines are judged alike.
+ideal sensors there are none or next to none. Ours (and `sparse` and pyoperon alone, which run through
+identify) are given the case's validation flight as their validation role, as a user with two flights gives
+it (`quadsr identify --validate-log`): they fit and pick on the whole training flight, as the baselines fit
+on it, and are validated on the other flight; train on one flight, validate on another. With
+--own-validation-block ours keeps the training flight's last fifth to validate on instead (identify's
+default roles for one flight), so it fits and picks on fewer rows; the true terms the whole flight pins down
+but those rows (fit_and_pick_rows) do not are then listed per case in the results md, and are still counted
+missing when left out and held to the coefficient floor. Sensor cases: the reference adds the
+accelerometer's bias as the constants of fx fy fz (it is in the data), the targets add the vehicle's
+gravity (the g its accelerometer measures against), and every engine's model is scored in the weak form on
+the validation flight's raw sensor targets ("(weak)" in the table), so ours and the baselines are judged
+alike.
 The table goes to OUT/discovery.md and OUT/discovery.csv as well. Floors, for ours
 on every case: the true terms and no others (so at most 1.5x the true term count), coefficients within 5%,
 validation R^2 >= 0.9999 on every target, a lowest R^2 at least every baseline's, and a SITL flight of 60 s
@@ -65,7 +70,7 @@ machine: on a loaded one the wall time is several times the CPU time). PASS only
 
 Usage: python bench/discovery.py [--cases NAME,...] [--engines NAME,...] [--rows N] [--seed N]
                                  [--operon-generations N] [--train-duration S] [--out DIR] [--reuse-flights]
-                                 [--settings ENGINE_SETTINGS.yaml] [--jobs N]
+                                 [--settings ENGINE_SETTINGS.yaml] [--jobs N] [--own-validation-block]
 """
 
 from __future__ import annotations
@@ -671,10 +676,14 @@ def main() -> int:
     ap.add_argument("--out", default="results/discovery", help="folder for SITL flights and the table")
     ap.add_argument("--reuse-flights", action="store_true",
                     help="read the SITL flights a previous run left in --out (same seed and duration)")
-    ap.add_argument("--validation-flight", action="store_true",
-                    help="give ours the case's validation flight as its validation role (as `quadsr identify "
-                         "--validate-log`), so the whole training flight fits and picks "
-                         "(docs/discovery-log.md, session 14)")
+    roles = ap.add_mutually_exclusive_group()
+    roles.add_argument("--validation-flight", action="store_true",
+                       help="give ours the case's validation flight as its validation role (as `quadsr "
+                            "identify --validate-log`), so the whole training flight fits and picks (the "
+                            "default since session 22)")
+    roles.add_argument("--own-validation-block", action="store_true",
+                       help="ours keeps the training flight's last fifth to validate on (identify's roles "
+                            "for one flight; the bench's default until session 21)")
     ap.add_argument("--jobs", type=int, default=default_jobs(),
                     help="processes identify fits the targets in side by side (default: every core); the "
                          "models are the same for any value")
@@ -682,6 +691,7 @@ def main() -> int:
                     help="ours picks on the training flight's pick time spread over this many blocks "
                          "(identify --pick-blocks; docs/discovery-log.md, session 14)")
     args = ap.parse_args()
+    args.validation_flight = not args.own_validation_block
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
     names = None if args.cases is None else [c.strip() for c in args.cases.split(",")]
     unknown = [n for n in names or [] if n not in {c.name for c in CASES}]

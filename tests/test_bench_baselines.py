@@ -73,8 +73,9 @@ def test_the_settings_state_the_libraries_and_pyoperons_budget():
 
 
 def test_the_validation_flight_option_gives_the_whole_training_flight_to_fit_and_pick():
-    # --validation-flight: ours validates on the case's other flight (as `quadsr identify --validate-log`),
-    # so no block of the training flight is set aside; without it, identify's fit | pick | validate blocks
+    # the bench's default: ours validates on the case's other flight (as `quadsr identify --validate-log`),
+    # so no block of the training flight is set aside; --own-validation-block: identify's fit | pick |
+    # validate blocks of the training flight
     case = next(c for c in discovery.CASES if c.name == "paper vehicle")
     train, val = discovery.synthetic(case, 1500, 0), discovery.synthetic(case, 600, 1000)
     gravity = 9.81
