@@ -11,11 +11,8 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Callable, Hashable
-from typing import TypeVar
 
 import numpy as np
-
-T = TypeVar("T")
 
 # bytes kept per rows array: the 250 Hz closed-loop flight's 15,000 rows hold 125 kB per column, so about
 # 1600 columns; past it values are computed and not kept
