@@ -163,6 +163,8 @@ def identify(
 ) -> Model:
     """Identify the targets from a Dataset (identification.dataset); returns a learned Model.
 
+    targets: of ax ay az dwx dwy dwz (a sequence, or one comma-separated string); UserError for any other
+    name (the body-frame fx fy fz are learned for ax ay az, not asked for) or for none.
     budget: genetic-programming generations per target (an iteration count, not seconds). pick / validate:
     whole flights for those roles, else time blocks of each flight (pick_fraction, validate_fraction) with
     gap_s (s) between blocks; pick_blocks > 1: the pick rows in that many blocks spread over each flight
@@ -187,6 +189,7 @@ def identify(
         raise UserError(f"the number of processes (jobs) must be a whole number >= 1, got {jobs}")
     if not (np.isfinite(r2_threshold) and r2_threshold <= 1.0):
         raise UserError(f"the validation R^2 threshold must be a number <= 1, got {r2_threshold}")
+    targets = parse_targets(targets)  # an unknown name (fx, a typo): an error, not an empty model
     settings = settings or EngineSettings()
     roles = assign_roles(
         dataset,
