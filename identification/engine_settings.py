@@ -157,7 +157,8 @@ class DiscoverySettings:
     polish_merge: bool = True
     # hub law (identification.hub_law): for a flight near the ground, where the rounds would stop with height
     # terms in the pick, they are refit as one law per target at each rotor's hub height h - r_i.g, the hubs'
-    # offsets r_i learned (variable projection, at most hub_law_evaluations function evaluations), powers of
+    # offsets r_i learned (variable projection, at most hub_law_evaluations function evaluations per stage:
+    # from the CG the in-plane arms, then all twelve offsets), powers of
     # 1/H_i up to hub_law_powers; the law joins the pool as one feature in place of the height features,
     # and rounds go on on its residual; at most hub_law_fits times (0: off). On by default since session 20,
     # with hub_law_shared (below): over the whole discovery bench it changes two cases, both for the better
