@@ -39,6 +39,7 @@ airspeed by 0.035/0.044/0.062 %: the rest of the model's small terms are below t
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -180,6 +181,12 @@ def fit_hub_law(
         free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations)
         start = None if free is None else np.asarray(free.offsets)
     x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
+
+    def descend(offsets: Callable[[np.ndarray], np.ndarray], p0: np.ndarray) -> np.ndarray:
+        """The parameters p (of the offsets(p), m) least_squares reaches from p0 within the budget."""
+        return least_squares(lambda p: solve(offsets(p))[0] / scale, p0, bounds=(-bound, bound),
+                             x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations).x
+
     if max_evaluations > 0 and start is None:
         # the in-plane arms first, the heights held at the CG's, then all twelve (module docstring: from
         # the CG, a fit of all twelve moved the hubs vertically first and could stay there)
@@ -190,12 +197,9 @@ def fit_hub_law(
             r[planar] = p
             return r
 
-        x0[planar] = least_squares(lambda p: solve(in_plane(p))[0] / scale, x0[planar],
-                                   bounds=(-bound, bound), x_scale=0.1 * bound, diff_step=1e-4,
-                                   max_nfev=max_evaluations).x
+        x0[planar] = descend(in_plane, x0[planar])
     if max_evaluations > 0:
-        x = least_squares(lambda r: solve(r)[0] / scale, x0, bounds=(-bound, bound),
-                          x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations).x
+        x = descend(lambda r: r, x0)
     else:  # the offsets as given: only the coefficients fitted
         x = x0
     # the airspeed terms at the offsets the rotor speeds place: near r = 0 the four hubs' airspeeds are one
