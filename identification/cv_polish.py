@@ -9,6 +9,10 @@ candidate, removed, or one such term added; every move is scored by the same cro
 candidates (identification.cross_validation) and joins them, and the pick's own rule (identification.pareto:
 identified on the fit rows, no anti-damping, the simplest within tolerance of the best) picks again, until
 the pick stays (at most `rounds` times). The moves are fitted on the fit rows, as the engine's candidates.
+Beside every candidate's terms the moves may use `extra` terms: identify passes the engine's shape twins of
+the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins). On realistic-sensor
+fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has the lower cross-validated
+loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in.
 """
 
 from __future__ import annotations
@@ -44,23 +48,27 @@ def polish_by_cross_validation(
     mark: Callable[[list[Candidate]], None],
     rounds: int = 4,
     engine: str = "cv-polish",
+    extra: Sequence[sympy.Expr] = (),
 ) -> Candidate:
     """The pick after up to `rounds` rounds of one-term moves (module docstring); the moves that could be
     picked (within the pick's tolerance of the best) are appended to `candidates`. mark: sets the new
-    candidates' self-feedback (identification.self_feedback on the fit rows)."""
+    candidates' self-feedback (identification.self_feedback on the fit rows). extra: terms the moves may
+    use beside every candidate's (the engine's shape twins of the pick's terms)."""
     with single_threaded_blas():  # small solves: BLAS threads only contend
-        return _polish(chosen, candidates, folded, kind, selection, mark, rounds, engine)
+        return _polish(chosen, candidates, folded, kind, selection, mark, rounds, engine, extra)
 
 
 def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, kind: str,
             selection: SelectionSettings, mark: Callable[[list[Candidate]], None], rounds: int,
-            engine: str) -> Candidate:
+            engine: str, extra: Sequence[sympy.Expr] = ()) -> Candidate:
     if chosen.holdout_loss is None or not np.isfinite(chosen.holdout_loss):
         return chosen  # nothing scored: no tolerance to compare moves against
     pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
     for c in candidates:
         for s in term_shapes(c.expression):
             pool.setdefault(s, s)
+    for s in extra:
+        pool.setdefault(s, s)
     seen = {_key(term_shapes(c.expression)) for c in candidates}
     distinct: dict[bytes, sympy.Expr] = {}  # one term per column of values: twins only make ties
     for s in [*term_shapes(chosen.expression), *pool]:

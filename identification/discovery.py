@@ -349,6 +349,7 @@ class DiscoveryEngine:
             del candidates[n:]
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
+        self._final = (space, columns, Z, X)  # nearest_features' space
         if best is not None and budget > 0:
             op_start = time.perf_counter()
             gp = self._operon(best, columns, X, y_point, Xh, yh, seed, loss, budget)
@@ -368,6 +369,34 @@ class DiscoveryEngine:
         if progress:
             progress(1.0, f"{len(candidates)} candidates")
         return candidates
+
+    def nearest_features(self, shapes: Sequence[sympy.Expr], count: int) -> list[sympy.Expr]:
+        """For each shape (an expression in the primitives), the `count` features of the last fit's space
+        of the same primitives most correlated with it on the fit rows (|correlation| of the standardized
+        columns), no height feature and not the shape itself: its shape twins (wz^2 beside |wz|), which the
+        cross-validated polish may swap in (identification.cv_polish). The same primitives, as the features
+        most correlated overall are the term times a nearly constant factor (|wz| sqrt(u1^2 + .. + u4^2)).
+        [] before a fit or with count < 1."""
+        final = getattr(self, "_final", None)
+        if final is None or count < 1 or not shapes:
+            return []
+        space, columns, Z, X = final
+        exprs = space.expressions[: Z.shape[1]]
+        variables = [frozenset(map(str, e.free_symbols)) for e in exprs]
+        M = _standardized(self._term_columns(list(shapes), columns, X))
+        with np.errstate(all="ignore"):
+            corr = np.abs(np.nan_to_num(Z, nan=0.0).T @ np.nan_to_num(M, nan=0.0)) / max(len(M), 1)
+        corr[space.height_features()[: len(corr)]] = -1.0
+        out: dict[sympy.Expr, None] = {}
+        for k, shape in enumerate(shapes):
+            own = frozenset(map(str, shape.free_symbols))
+            if not own or not np.all(np.isfinite(M[:, k])):
+                continue
+            near = [i for i in np.argsort(-corr[:, k], kind="stable")
+                    if corr[i, k] > 0.0 and variables[i] == own and exprs[i] != shape]
+            for i in near[:count]:
+                out.setdefault(exprs[i], None)
+        return list(out)
 
     def _law_due(self, best: Candidate | None, space: FeatureSpace, laws: int) -> bool:
         """Whether to fit a hub law now: fewer than hub_law_fits fitted, the flight reaches near the ground

@@ -231,6 +231,10 @@ class SelectionSettings:
     # dropped for being small (closed-loop fang-chen-aero's fz: wx*wz, 5 % of the cross-validated loss at
     # t 4, under the tolerance's absolute part). 0: off (the tolerance alone, as before session 21)
     cv_polish_z: float = 2.0
+    # the cross-validated polish may also swap in, for each term of the pick, this many features of the
+    # engine's space most correlated with it on the fit rows (its shape twins: |wz| beside wz^2, which no
+    # candidate may hold); 0: only the candidates' terms
+    cv_polish_twins: int = 3
 
 
 @dataclass(frozen=True)

@@ -293,9 +293,12 @@ def identify(
         scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
         chosen = select(candidates, settings.selection, scale=scale)
         if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
+            twins = settings.selection.cv_polish_twins
+            extra = eng.nearest_features(term_shapes(chosen.expression), twins) \
+                if twins > 0 and hasattr(eng, "nearest_features") else []
             chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
                                                 functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
-                                                                  target=name))
+                                                                  target=name), extra=extra)
         flag = _excitation(name, candidates, (X[ok], y[ok]), loss, ops, settings, score)
         if flag is not None:
             chosen, line, out["not_excited"] = flag

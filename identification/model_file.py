@@ -171,9 +171,11 @@ def check_expression(expr: sympy.Expr) -> None:
 
 def complexity(expr: sympy.Expr) -> int:
     """The size of an expression: the number of nodes in its sympy tree, an integer power counted as one
-    unary operator (x**2 as abs(x): its exponent is no node of its own)."""
+    unary operator (its exponent is no node of its own) and an absolute value as two, as a square root
+    (Pow(x, 1/2): x and its exponent): a kink costs what a fractional power does."""
     nodes = list(sympy.preorder_traversal(expr))
-    return len(nodes) - sum(1 for node in nodes if node.is_Pow and node.exp.is_Integer)
+    return (len(nodes) - sum(1 for node in nodes if node.is_Pow and node.exp.is_Integer)
+            + sum(1 for node in nodes if isinstance(node, sympy.Abs)))
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
