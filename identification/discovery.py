@@ -349,7 +349,8 @@ class DiscoveryEngine:
             del candidates[n:]
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
-        self._final = (space, columns, Z, X)  # nearest_features' space
+        # nearest_features' space, with Z's NaN-free copy when the rounds made one for this Z
+        self._final = (space, columns, Z, zf[1] if zf is not None and zf[0] is Z else None, X)
         if best is not None and budget > 0:
             op_start = time.perf_counter()
             gp = self._operon(best, columns, X, y_point, Xh, yh, seed, loss, budget)
@@ -380,12 +381,13 @@ class DiscoveryEngine:
         final = getattr(self, "_final", None)
         if final is None or count < 1 or not shapes:
             return []
-        space, columns, Z, X = final
+        space, columns, Z, clean, X = final
         exprs = space.expressions[: Z.shape[1]]
         variables = [frozenset(map(str, e.free_symbols)) for e in exprs]
         M = _standardized(self._term_columns(list(shapes), columns, X))
+        clean = np.nan_to_num(Z, nan=0.0) if clean is None else clean
         with np.errstate(all="ignore"):
-            corr = np.abs(np.nan_to_num(Z, nan=0.0).T @ np.nan_to_num(M, nan=0.0)) / max(len(M), 1)
+            corr = np.abs(clean.T @ np.nan_to_num(M, nan=0.0)) / max(len(M), 1)
         corr[space.height_features()[: len(corr)]] = -1.0
         out: dict[sympy.Expr, None] = {}
         for k, shape in enumerate(shapes):
