@@ -155,12 +155,15 @@ def fit_hub_law(
 
     def law_cols(r: np.ndarray, with_airspeed: bool) -> np.ndarray:
         L = hub_columns(inputs, r.reshape(4, 3), powers, with_airspeed)
-        if arm is not None:
-            a = arms(r)
-            blocks = L.shape[1] // (4 * powers)
-            L = np.hstack([sum(a[i] * L[:, (b * 4 + i) * powers:(b * 4 + i + 1) * powers] for i in range(4))
-                           for b in range(blocks)])
-        return L if weak is None else np.asarray(weak @ L)
+        # a hub below the ground gives inf columns (and inf - inf in a shared law): solve() rejects those
+        # offsets, so numpy's warnings would only reach the user's terminal
+        with np.errstate(invalid="ignore", over="ignore"):
+            if arm is not None:
+                a = arms(r)
+                blocks = L.shape[1] // (4 * powers)
+                L = np.hstack([sum(a[i] * L[:, (b * 4 + i) * powers:(b * 4 + i + 1) * powers]
+                                   for i in range(4)) for b in range(blocks)])
+            return L if weak is None else np.asarray(weak @ L)
 
     def solve(r: np.ndarray, with_airspeed: bool = False) -> tuple[np.ndarray, np.ndarray]:
         L = law_cols(r, with_airspeed)

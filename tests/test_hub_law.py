@@ -10,6 +10,7 @@ Seeded; on the engine test measured 1.2 % with the law against 8.1 % without (ti
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -239,6 +240,20 @@ def test_one_law_for_every_rotor_with_its_moment_arm(target, arm):
     b = np.asarray(law.coefficients)  # per rotor: its share times the one law
     np.testing.assert_allclose(b, np.outer(share, b[0] / share[0]), rtol=1e-9, atol=0.0)
     assert height_law_error(law.expression() + far, truth - far, Xv) < 5e-3
+
+
+def test_offsets_that_put_a_hub_below_the_ground_are_rejected_without_numpy_warnings():
+    # A torque law's shares over inf columns (a hub at or below the ground) give inf - inf; the fit rejects
+    # such offsets, and numpy's RuntimeWarning reached the user's terminal (a closed-loop realistic flight).
+    X = _rows(500, 3)
+    truth, far = _law("dwx")
+    rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+    below = np.asarray(GROUND_VEHICLE.rotor_arms) + [0.0, 0.0, 0.5]  # 0.5 m under the CG: under the rows' h
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        law = fit_hub_law(primitive_matrix(X, HUB_PRIMITIVES), body_values(truth, X), rest, 3, start=below,
+                          max_evaluations=5, arm="roll")
+    assert law is not None and np.all(np.isfinite(law.coefficients))
 
 
 def _engine_fit(target: str, vehicle, settings: DiscoverySettings, seed: int = 7):
