@@ -57,21 +57,28 @@ def damping_rows(log: Path, vehicle: str, shifts: tuple[float, ...]) -> list[dic
     ds = load_dataset(str(log), targets="sensors", gravity=veh.gravity, sensor_settings=RAW_SENSOR_TARGETS)
     dt = float(np.median(np.diff(ds.t)))
     Y = body_targets(ds.xi, ds.targets, veh.gravity)
+    structure = {}  # per target: its true terms, the damping's index among them, the damping's true value
+    for target, _, damping in RATE_TARGETS:
+        expr = sympy.expand(truth[target])
+        shapes = term_shapes(expr)
+        k = [str(s) for s in shapes].index(damping)
+        structure[target] = (shapes, k, float(expr.coeff(shapes[k])))
+    operators: dict[bytes, np.ndarray] = {}  # the weak form's test functions, per set of usable rows
     rows = []
     for shift in shifts:
         u = np.column_stack([np.interp(ds.t + shift * dt, ds.t, ds.u[:, i]) for i in range(4)])
         X = np.column_stack([ds.xi, u])
-        for target, col, damping in RATE_TARGETS:
-            expr = sympy.expand(truth[target])
-            shapes = term_shapes(expr)
+        for target, col, _ in RATE_TARGETS:
+            shapes, k, true_c = structure[target]
             A = expression_columns(shapes, X)
             y = Y[:, col]
             ok = np.all(np.isfinite(A), axis=1) & np.isfinite(y)
-            op = weak_rows(ds.t[ok], ds.flight[ok], WeakSettings())
+            key = ok.tobytes()
+            if key not in operators:
+                operators[key] = weak_rows(ds.t[ok], ds.flight[ok], WeakSettings())
+            op = operators[key]
             Aw, yw = op @ A[ok], op @ y[ok]
             coef = np.linalg.lstsq(Aw, yw, rcond=None)[0]
-            k = [str(s) for s in shapes].index(damping)
-            true_c = float(expr.coeff(shapes[k]))
             rows.append({"flight": log.stem, "shift_us": round(shift * dt * 1e6, 2), "target": target,
                          "damping_error": float(coef[k] / true_c - 1.0),
                          "residual_rms": float(np.sqrt(np.mean((yw - Aw @ coef) ** 2)))})

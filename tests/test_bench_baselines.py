@@ -4,22 +4,15 @@ reproduces validation rows; the settings written above the table state the libra
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from bench_module import bench_module
 
 from identification.model_file import SYMBOLS, TARGET_NAMES
 from identification.table import Dataset
 from identification.validate import expression_terms
 
-REPO = Path(__file__).resolve().parent.parent
-_SPEC = importlib.util.spec_from_file_location("bench_discovery", REPO / "bench" / "discovery.py")
-discovery = importlib.util.module_from_spec(_SPEC)
-sys.modules["bench_discovery"] = discovery  # its dataclasses look their module up there
-_SPEC.loader.exec_module(discovery)
+discovery = bench_module("discovery.py", "bench_discovery")
 
 # per target: {monomial of the 16 variables: coefficient}, a sparse degree-2 polynomial
 TRUTH = {

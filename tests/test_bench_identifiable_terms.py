@@ -4,17 +4,10 @@ identifiable, the rotor torques beside it are not, and on noise-free rows nothin
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
+from bench_module import bench_module
 
-REPO = Path(__file__).resolve().parent.parent
-_SPEC = importlib.util.spec_from_file_location("bench_discovery", REPO / "bench" / "discovery.py")
-discovery = importlib.util.module_from_spec(_SPEC)
-sys.modules["bench_discovery"] = discovery  # its dataclasses look their module up there
-_SPEC.loader.exec_module(discovery)
+discovery = bench_module("discovery.py", "bench_discovery")
 
 
 def test_a_term_below_the_noise_is_not_identifiable_and_the_torques_are():

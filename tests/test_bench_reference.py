@@ -4,29 +4,13 @@ force), as the reference of the same case without a ground law has it."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
 import sympy
-
-REPO = Path(__file__).resolve().parent.parent
-
-
-def _bench():
-    """bench/discovery.py as a module (the one test_bench_baselines loaded, when it did)."""
-    if "bench_discovery" in sys.modules:
-        return sys.modules["bench_discovery"]
-    spec = importlib.util.spec_from_file_location("bench_discovery", REPO / "bench" / "discovery.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_discovery"] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+from bench_module import bench_module
 
 
 def test_a_sensor_case_with_a_ground_law_keeps_the_accelerometer_bias_in_its_reference():
-    bench = _bench()
+    bench = bench_module("discovery.py", "bench_discovery")
     loop = {"sitl_vehicle": "fang-chen-aero", "open_loop": False, "profiles": ("closed-loop", "closed-loop")}
     sensors = bench.Case("realistic", sensors="realistic", targets="sensors", **loop)
     ideal = bench.Case("ideal", **loop)

@@ -4,22 +4,17 @@ with known answers; and RotorPy's physics written out in quadsr's primitives. Ne
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 import sympy
+from bench_module import bench_module
 from scipy.spatial.transform import Rotation
 
 from bridge.rotations import euler_from_quaternions, rotation_matrix
 from identification.body_frame import PRIMITIVE_SYMBOLS, body_targets, primitive_matrix
 from identification.model_file import TARGET_NAMES
 
-REPO = Path(__file__).resolve().parent.parent
-_spec = importlib.util.spec_from_file_location("independent_sim", REPO / "bench" / "independent_sim.py")
-sim = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(sim)
+sim = bench_module("independent_sim.py", "independent_sim")
 
 # RotorPy 3.0.0's Hummingbird parameters (rotorpy/vehicles/hummingbird_params.py), written here so the
 # test needs no rotorpy
