@@ -41,6 +41,11 @@ class Candidate:
     # () -> (weakest_t, largest_vif), run once when the pick first asks (measured()): most of an engine's
     # candidates are never near the pick, and each measure is a pass over the fit rows
     measure: Callable[[], tuple[float, float]] | None = field(default=None, repr=False, compare=False)
+    # per additive term (its shape as a string): (coefficient, its standard error) in the target's unit per
+    # the term's, under the rows' stated noise (the generalised refit, identification.weak_noise); None:
+    # not measured
+    standard_errors: dict[str, tuple[float, float]] | None = field(default=None, compare=False)
+    refit_test: dict | None = field(default=None, compare=False)  # which refit, and why (weak_noise)
 
     def measured(self) -> Candidate:
         """The candidate with weakest_t and largest_vif set (its deferred measure run, once)."""

@@ -235,6 +235,14 @@ class SelectionSettings:
     # engine's space most correlated with it on the fit rows (its shape twins: |wz| beside wz^2, which no
     # candidate may hold); 0: only the candidates' terms
     cv_polish_twins: int = 3
+    # the chosen structure's refit (on the fit and pick rows) by generalised least squares where the rows
+    # are weak and the log states its targets' raw noise (identification.weak_noise): the weak rows' noise
+    # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate
+    # dampings); false: ordinary least squares on the weak rows, as the candidates were fitted
+    refit_gls: bool = True
+    # that refit's standard errors go in the model file; a term whose standard error is above this fraction
+    # of its coefficient is named on the terminal as not pinned down by the flight
+    report_relative_se: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -277,6 +285,9 @@ def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
     if settings.selection.cv_blocks_per_fold < 1:
         raise UserError(f"{where}: key 'selection.cv_blocks_per_fold': must be 1 or more",
                         hint="the blocks each fold holds out, spread over the flight")
+    if not settings.selection.report_relative_se > 0:
+        raise UserError(f"{where}: key 'selection.report_relative_se': must be above 0",
+                        hint="the fraction of a coefficient its standard error may reach unnamed, e.g. 0.1")
     bad = [g for g in settings.sparse.groups if g not in GROUPS]
     if bad:
         raise UserError(

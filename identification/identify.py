@@ -69,6 +69,7 @@ from identification.refit import refit_rows
 from identification.self_feedback import mark_self_feedback
 from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
+from identification.weak_noise import Whitener, uncertain_terms, weak_whitener
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
@@ -305,8 +306,12 @@ def identify(
             candidates.append(chosen)
             lines.append(f"warning: {line}")
         if settings.selection.refit_with_pick_rows or folded is not None:
+            whiteners = None
+            if settings.selection.refit_gls and weak is not None:
+                whiteners = [_whitener(part, mask, ops[key], j)
+                             for part, mask, key in ((roles.fit, ok, "train"), (roles.pick, okp, "pick"))]
             refit = refit_rows(chosen, [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])], loss,
-                               settings.sparse.irls_iterations, settings.sparse.irls_max_terms)
+                               settings.sparse.irls_iterations, settings.sparse.irls_max_terms, whiteners)
             if refit is not None:
                 candidates = [refit if c is chosen else c for c in candidates]
                 chosen = refit
@@ -330,6 +335,11 @@ def identify(
             coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         out["identifiability"] = coll.as_dict()
         lines += describe(name, coll)
+        if chosen.standard_errors:
+            out["identifiability"]["standard_errors"] = {term: {"coefficient": k, "standard_error": e}
+                                                         for term, (k, e) in chosen.standard_errors.items()}
+            out["identifiability"]["refit"] = chosen.refit_test
+            lines += uncertain_terms(name, chosen.standard_errors, settings.selection.report_relative_se)
         out["model"] = TargetModel(
             name=name,
             expression=chosen.expression,
@@ -499,6 +509,14 @@ def _excitation(
         "flag": line,
     }
     return minimal, line, record
+
+
+def _whitener(rows: Dataset, mask: np.ndarray, operator: Any, target: int) -> Whitener | None:
+    """The whitener of a role's weak rows (its rows under mask) for target index target, when its log
+    states that target's raw noise (Dataset.target_noise); None otherwise."""
+    if operator is None or rows.target_noise is None or rows.target_noise[target] is None or not mask.any():
+        return None
+    return weak_whitener(operator, rows.t[mask], rows.flight[mask], rows.target_noise[target])
 
 
 def _gap_rows(t: np.ndarray, operator: Any, gap_s: float) -> int:

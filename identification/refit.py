@@ -26,32 +26,45 @@ from identification.collinearity import term_shapes
 from identification.library import Feature
 from identification.metrics import loss as loss_fn
 from identification.sparse import LeastSquaresProblem, sparse_expression
+from identification.weak_noise import Whitener, specification_test
 
 Rows = tuple[np.ndarray, np.ndarray, "sparse.spmatrix | None"]  # X (N,16), y (N,), weak operator or None
 
 
 def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterations: int,
-               irls_max_terms: int) -> Candidate | None:
+               irls_max_terms: int, whiteners: Sequence[Whitener | None] | None = None) -> Candidate | None:
     """The chosen candidate with each additive term's coefficient refit on every part's rows together
     (parts: (X (N,16), y (N,) in the target's unit, the weak operator of those rows or None)); None when
-    a term is not finite on those rows, the expression has no terms, or the refit is not finite."""
+    a term is not finite on those rows, the expression has no terms, or the refit is not finite.
+    whiteners: per part, its weak rows' whitener (identification.weak_noise): when every part with rows
+    has one, generalised least squares if Hausman's test does not reject it against the weak rows' own fit
+    (weak_noise.specification_test), else that fit; either way each term's standard error under the
+    stated noise (Candidate.standard_errors) and the test (Candidate.refit_test). Without: as before."""
     shapes = term_shapes(chosen.expression)
     if not shapes:
         return None
-    blocks_a, blocks_b = [], []
-    for X, y, op in parts:
-        if len(X) == 0:
-            continue
+    used = [i for i, (X, _, _) in enumerate(parts) if len(X)]
+    whiten = whiteners is not None and bool(used) and all(
+        parts[i][2] is not None and whiteners[i] is not None for i in used)
+    plain_a, plain_b = [], []
+    for i in used:
+        X, y, op = parts[i]
         cols = expression_columns(shapes, X)
         if not np.all(np.isfinite(cols)):
             return None
         if op is not None:
             cols, y = np.asarray(op @ cols), np.asarray(op @ y)
-        blocks_a.append(cols)
-        blocks_b.append(np.asarray(y, float))
-    if not blocks_a:
+        plain_a.append(cols)
+        plain_b.append(np.asarray(y, float))
+    if not plain_a:
         return None
-    a, b = np.vstack(blocks_a), np.concatenate(blocks_b)
+    test = specification_test([(a, b, whiteners[i]) for a, b, i in zip(plain_a, plain_b, used, strict=True)]
+                              ) if whiten else None
+    if test is not None and test.generalised:
+        a = np.vstack([whiteners[i].apply(ai) for ai, i in zip(plain_a, used, strict=True)])
+        b = np.concatenate([whiteners[i].apply(bi) for bi, i in zip(plain_b, used, strict=True)])
+    else:
+        a, b = np.vstack(plain_a), np.concatenate(plain_b)
     problem = LeastSquaresProblem(a, b)
     active = problem.usable.copy()
     coef = problem.solve(active)
@@ -60,6 +73,11 @@ def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterati
     if not np.all(np.isfinite(coef)):
         return None
     c = terms_candidate(shapes, coef, chosen.engine)
+    if test is not None:
+        se = test.se_gls if test.generalised else test.se_plain
+        c.standard_errors = {str(sh): (float(k), float(e)) for sh, k, e in zip(shapes, coef, se, strict=True)}
+        c.refit_test = test.as_dict()
+    a, b = np.vstack(plain_a), np.concatenate(plain_b)  # the loss on the rows as the candidates saw them
     c.complexity, c.train_loss = chosen.complexity, loss_fn(b, a @ coef, loss)
     c.holdout_loss = chosen.holdout_loss  # the structure's pick loss, as fitted on the fit rows alone
     c.weakest_t, c.largest_vif = chosen.weakest_t, chosen.largest_vif

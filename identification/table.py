@@ -55,6 +55,8 @@ class Dataset:
     gravity_estimates: (file, g, its standard error) m/s^2: the gravity each flight's truth accelerations
     and accelerometer agree on, where its log holds both (identification.log_gravity).
     u_from_throttle: u is not measured but made from aux `throttle` by a thrust curve (motor_model).
+    target_noise: per target (6, in TARGET_NAMES' order), its raw noise as a filter of the sensor's white
+    noise along consecutive rows (identification.weak_noise), where the reader states it; None: not stated.
     """
 
     t: np.ndarray
@@ -74,6 +76,7 @@ class Dataset:
     segments: list[str] = field(default_factory=list)
     u_from_throttle: bool = False
     gravity_estimates: list[tuple[str, float, float]] = field(default_factory=list)
+    target_noise: tuple[tuple[float, ...] | None, ...] | None = None
 
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -152,6 +155,7 @@ class Dataset:
             aux[k] = np.concatenate(parts)
         formats = {f.format for f in flights}
         sources = {f.target_source for f in flights}
+        noise = {d.target_noise for d in datasets}
         return Dataset(
             t=np.concatenate([d.t for d in datasets]),
             xi=np.concatenate([d.xi for d in datasets]),
@@ -170,6 +174,7 @@ class Dataset:
             flight=np.concatenate(flight_ids),
             flights=flights,
             aux=aux,
+            target_noise=noise.pop() if len(noise) == 1 else None,
         )
 
     def split(self, holdout_fraction: float) -> tuple[Dataset, Dataset]:

@@ -62,6 +62,7 @@ def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
     from dataclasses import replace
 
     from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, weak_rows
+    from identification.weak_noise import STEP_DIFFERENCE, STEP_MEAN
 
     g = 9.8  # fang-chen-buaa's
     intervals = load_dataset(flights["train"], targets="sensors", gravity=g,
@@ -71,6 +72,10 @@ def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
     assert np.allclose(np.round(intervals.t / 0.004 % 1.0, 6), 0.5)  # step midpoints
     assert np.allclose(np.round(samples.t / 0.004 % 1.0, 6) % 1.0, 0.0)
     assert len(intervals) > 600
+    # neighbouring step rows share an IMU sample: the log states that noise (the generalised refit's)
+    assert intervals.target_noise == (STEP_MEAN,) * 3 + (STEP_DIFFERENCE,) * 3
+    assert samples.target_noise is None
+    assert intervals.select(slice(0, 10)).target_noise == intervals.target_noise
 
     def weak_error(ds: Dataset) -> np.ndarray:
         V = weak_rows(ds.t, ds.flight, WeakSettings())

@@ -107,3 +107,28 @@ def test_validate_reports_table_one_in_the_weak_form(noisy_flight, tmp_path):
     weak = validate(truth, ds, tmp_path / "weak", weak=WeakSettings()).metrics["dwz"]
     assert point["r2"] < 0.9 and weak["r2"] > 0.999, (point, weak)
     assert weak["rows"] == weak_operator(ds.t).shape[0] < len(ds)
+
+
+def test_identify_refits_by_generalised_least_squares_and_reports_standard_errors(noisy_flight, capsys):
+    """A dataset that states its targets' raw noise (here the gyro's 5-point quadratic derivative of white
+    noise) gets its chosen terms refit on whitened weak rows (identification.weak_noise): the model file
+    holds each term's standard error, and a term above the stated fraction of its value is named."""
+    from dataclasses import replace
+
+    from identification.engine_settings import EngineSettings
+
+    ds, exact = noisy_flight
+    quadratic5 = (-0.2, -0.1, 0.0, 0.1, 0.2)  # d/dt of a quadratic through 5 samples, times dt
+    stated = replace(ds, target_noise=(None,) * 3 + (quadratic5,) * 3)
+    strict = EngineSettings()
+    strict = replace(strict, selection=replace(strict.selection, report_relative_se=1e-9))
+    model = identify(stated, targets=("dwz",), budget=1, seed=0, weak=WeakSettings(), progress=False,
+                     settings=strict)
+    errors = model.extra["identifiability"]["targets"]["dwz"]["standard_errors"]
+    assert errors and all(0 < e["standard_error"] < abs(e["coefficient"]) for e in errors.values())
+    refit = model.extra["identifiability"]["targets"]["dwz"]["refit"]
+    assert refit["method"] == "generalised least squares" and refit["p_value"] >= refit["level"]
+    assert "standard error above" in capsys.readouterr().err
+    plain = identify(ds, targets=("dwz",), budget=1, seed=0, weak=WeakSettings(), progress=False)
+    assert "standard_errors" not in plain.extra["identifiability"]["targets"]["dwz"]
+    assert model.targets["dwz"].metrics["validation"]["r2"] > 0.995

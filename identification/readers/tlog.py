@@ -49,6 +49,7 @@ from identification.targets import (
     sensor_targets,
     truth_targets,
 )
+from identification.weak_noise import STEP_DIFFERENCE, STEP_MEAN
 
 STEP_S = 0.004
 # Point truth targets of held commands: a command change (any change) restarts the motor lag, so the
@@ -279,8 +280,11 @@ def read_tlog_dataset(
                 "log)"
             )
             ground = {"ground_s": seconds_to_nearest(t_mid, rest_times)}
-            return _with_gravity(make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps,
-                                              notes, extra, aux=ground), gravity_estimate)
+            ds = make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
+                              aux=ground)
+            if decimation == 1:  # consecutive rows share a sample: the targets' noise is correlated
+                ds.target_noise = (STEP_MEAN,) * 3 + (STEP_DIFFERENCE,) * 3
+            return _with_gravity(ds, gravity_estimate)
     if targets == "truth":
         tgt[idx] = truth_targets(
             t[idx], vel[idx], rates[idx], dt=STEP_S, kinks=None if kinks is None else kinks[idx]
