@@ -39,7 +39,8 @@ def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterati
     whiteners: per part, its weak rows' whitener (identification.weak_noise): when every part with rows
     has one, generalised least squares if Hausman's test does not reject it against the weak rows' own fit
     (weak_noise.specification_test), else that fit; either way each term's standard error under the
-    stated noise (Candidate.standard_errors) and the test (Candidate.refit_test). Without: as before."""
+    stated noise (Candidate.standard_errors; least squares' errors, also where loss 'absolute' then refits
+    the coefficients for the least absolute error) and the test (Candidate.refit_test). Without: as before."""
     shapes = term_shapes(chosen.expression)
     if not shapes:
         return None
