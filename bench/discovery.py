@@ -135,6 +135,7 @@ from identification.validate import (  # noqa: E402
     expression_terms,
 )
 from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, overlap_lag, weak_rows  # noqa: E402
+from identification.weak_noise import weak_whitener  # noqa: E402
 
 ENGINES = ("discovery", "sparse", "pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
 BASELINES = ("pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
@@ -439,17 +440,19 @@ def listed_terms(terms: dict[str, list[str]]) -> str:
 
 def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, gravity: float,
                          weak: bool, min_t: float = SelectionSettings().min_t,
-                         height_law: dict[str, sympy.Expr] | None = None) -> dict[str, list[str]]:
+                         height_law: dict[str, sympy.Expr] | None = None,
+                         stated_noise: bool = SelectionSettings().stated_noise_t) -> dict[str, list[str]]:
     """Per body-frame target, the true terms this training flight cannot pin down even given the true
-    structure: least squares of the target (weak: integrated against the test functions, as the engine
-    sees it) on every true term and a constant, and the terms whose t ratio (identification.collinearity,
-    its effective rows AR(1) on point rows, summed over the test functions' overlap on weak rows:
-    effective_rows) is below min_t, the t the engine's pick demands of its own terms. Those terms are
-    listed apart and neither counted missing nor held to the coefficient floor. height_law: a ground
-    effect's height-dependent part per target (height_law_reference), no monomial, so body_reference holds
-    the vehicle's no-ground terms only; it is part of the true structure, one more column (with its own
-    coefficient, no t asked of it): without it a flight near the ground leaves the law in the residual
-    and every other term's t falls with it."""
+    structure: least squares of the target (weak: integrated against the test functions, as the engine sees
+    it) on every true term and a constant, and the terms whose t ratio (identification.collinearity, its
+    effective rows AR(1) on point rows, summed over the test functions' overlap on weak rows:
+    effective_rows; under the stated noise on weak rows whose log states it and stated_noise, as identify's
+    pick does) is below min_t, the t the engine's pick demands of its own terms. Those terms are listed
+    apart and neither counted missing nor held to the coefficient floor. height_law: a ground effect's
+    height-dependent part per target (height_law_reference), no monomial, so body_reference holds the
+    vehicle's no-ground terms only; it is part of the true structure, one more column (with its own
+    coefficient, no t asked of it): without it a flight near the ground leaves the law in the residual and
+    every other term's t falls with it."""
     X = np.hstack([train.xi, train.u])
     names = tuple(PRIMITIVES)
     P = primitive_matrix(X, names)
@@ -470,10 +473,14 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
         ok = np.all(np.isfinite(cols), axis=1) & np.isfinite(y)
         cols, y = np.hstack([np.ones((int(ok.sum()), 1)), cols[ok]]), y[ok]
         lag = None  # point rows: AR(1); weak rows: the windows' overlap (collinearity.effective_rows)
+        noise = None  # weak rows whose log states its targets' noise: the t ratios under it, as identify's
         if weak:
             op = weak_rows(train.t[ok], train.flight[ok], WeakSettings())
             cols, y, lag = np.asarray(op @ cols), op @ y, overlap_lag(op)
-        t, _ = term_t_ratios(cols, y, lag)
+            stated = train.target_noise[j] if train.target_noise is not None else None
+            if stated is not None and stated_noise:
+                noise = weak_whitener(op, train.t[ok], train.flight[ok], stated)
+        t, _ = term_t_ratios(cols, y, lag, noise)
         if t is None:
             continue
         out[target] = [expression_to_string(k) for k, tk in zip(terms, t[1 : 1 + len(terms)], strict=True)
@@ -751,13 +758,15 @@ def main() -> int:
             raw_train, raw_val = (load_dataset(p, targets="sensors", sensor_settings=RAW_SENSOR_TARGETS,
                                                gravity=gravity) for p in tlogs)
         hidden = unidentifiable_terms(body_reference, raw_train if weak_case else train, gravity, weak_case,
-                                      height_law=height_reference)
+                                      height_law=height_reference,
+                                      stated_noise=(ours or EngineSettings()).selection.stated_noise_t)
         if any(hidden.values()):
             print(f"  true terms this training flight cannot pin down (t < {SelectionSettings().min_t:g} "
                   f"given the true structure): {listed_terms(hidden)}")
         if not args.validation_flight:  # ours keeps its own validation block: fewer rows to fit on
             own = fit_and_pick_rows(raw_train if weak_case else train)
-            fewer = unidentifiable_terms(body_reference, own, gravity, weak_case, height_law=height_reference)
+            fewer = unidentifiable_terms(body_reference, own, gravity, weak_case, height_law=height_reference,
+                                         stated_noise=(ours or EngineSettings()).selection.stated_noise_t)
             fewer = {k: [t for t in v if t not in hidden.get(k, [])] for k, v in fewer.items()}
             if any(fewer.values()):
                 notes.append(f"{case.name}: true terms the whole training flight pins down but its fit and "

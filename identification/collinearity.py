@@ -30,6 +30,7 @@ import numpy as np
 import sympy
 
 from identification.model_file import SYMBOLS, VARIABLE_NAMES, expression_to_string
+from identification.weak_noise import Whitener, estimate_covariance
 
 VIF_LIMIT = 10.0
 CONFOUNDER_VIF_LIMIT = 100.0
@@ -275,13 +276,14 @@ def _confounders(
     return tuple(worst[j] for j in sorted(worst))
 
 
-def weakest_t(columns: np.ndarray, y: np.ndarray, max_lag: int | None = None) -> float:
+def weakest_t(columns: np.ndarray, y: np.ndarray, max_lag: int | None = None,
+              noise: Whitener | None = None) -> float:
     """The smallest t ratio |c_j| / se_j over a linear model's non-constant terms (term_identification)."""
-    return term_identification(columns, y, max_lag)[0]
+    return term_identification(columns, y, max_lag, noise)[0]
 
 
 def term_identification(
-    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None
+    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None, noise: Whitener | None = None
 ) -> tuple[float, float]:
     """(the smallest t ratio |c_j| / se_j, the largest VIF) over a linear model's non-constant terms.
 
@@ -301,8 +303,12 @@ def term_identification(
     conservative where a few rows carry large errors (fang-chen-aero's dwy wx^2: t 3.0).
     Weak-form rows (columns and y integrated against overlapping test functions) give max_lag, the
     windows' overlap in rows (weak_form.overlap_lag), for their effective sample size (effective_rows).
+    Weak rows whose raw targets' noise the log states (noise: their whitener, identification.weak_noise)
+    get se_j under that noise instead (term_t_ratios): the effective sample size assumes the residual's
+    autocorrelation is the noise's, and on a differenced gyro's weak rows it gave t ratios 2.4x too large
+    (wx', wy') and 3x too small (wz') against the exact ones.
     """
-    t, vif = term_t_ratios(columns, y, max_lag)
+    t, vif = term_t_ratios(columns, y, max_lag, noise)
     if t is None:
         return 0.0, float("inf")
     measured = np.isfinite(vif)
@@ -312,13 +318,15 @@ def term_identification(
 
 
 def term_t_ratios(
-    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None
+    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None, noise: Whitener | None = None
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """(t ratio |c_j| / se_j, VIF_j) of each column (k,) of the least-squares fit of y (N,) on columns (N,k),
     with the effective sample size of term_identification (max_lag: weak-form rows, effective_rows);
     (None, [inf]) when there are fewer rows than columns. A column that does not vary (a constant) is
     fitted but gets NaN for both; t is inf for every column of an exact fit with a nonzero coefficient, 0
-    where a coefficient is 0."""
+    where a coefficient is 0. With noise (the whitener of exactly these N weak rows, every row finite):
+    se_j from the fit's weights on the rows' stated noise, its scale the whitened residual's variance
+    (weak_noise.estimate_covariance; the least-squares fit's sandwich under that noise)."""
     a = np.asarray(columns, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
@@ -342,9 +350,15 @@ def term_t_ratios(
     if s == 0.0:
         full_t[measured] = np.where(c > 0, np.inf, 0.0)
         return full_t, full_vif
-    n_eff = effective_rows(resid, max_lag)
+    if noise is not None and noise.rows == len(ok) and ok.all() and len(y) > a.shape[1]:
+        white = noise.apply(resid)
+        s2 = float(white @ white) / (len(y) - a.shape[1])
+        se = np.sqrt(np.maximum(np.diag(estimate_covariance(np.linalg.pinv(z), [noise], s2)), 0.0))
+        se = se[measured]
+    else:
+        se = s * np.sqrt(vif) / np.sqrt(effective_rows(resid, max_lag))
     with np.errstate(all="ignore"):
-        t = c / (s * np.sqrt(vif) / np.sqrt(n_eff))
+        t = c / se
     full_t[measured] = np.nan_to_num(t, nan=0.0)
     return full_t, full_vif
 

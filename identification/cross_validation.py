@@ -28,6 +28,7 @@ from identification.candidate import Candidate
 from identification.collinearity import term_shapes
 from identification.metrics import loss as loss_fn
 from identification.sparse import single_threaded_blas
+from identification.weak_noise import Whitener
 
 MIN_BLOCK_GAPS = 4  # a held-out block is at least this many gaps long (fewer blocks per fold if need be)
 Part = tuple[np.ndarray, np.ndarray, "sparse.spmatrix | None", int]  # X (N,16), y (N,), weak op, gap rows
@@ -37,14 +38,18 @@ class FoldedRows:
     """The fit and pick rows (point or weak rows) cut into K contiguous folds, with each term's values on
     them computed once (candidates of one target share most terms)."""
 
-    def __init__(self, parts: Sequence[Part], folds: int, blocks_per_fold: int = 1):
+    def __init__(self, parts: Sequence[Part], folds: int, blocks_per_fold: int = 1,
+                 fit_noise: Whitener | None = None):
         """parts: (X (N,16), y (N,) in the target's unit, the weak operator of those rows or None, the gap
         in rows either side of a held-out block); folds >= 2; the rows are cut into folds x blocks_per_fold
         contiguous blocks, dealt to the folds in turn (fold k holds blocks k, k + folds, ...); fewer blocks
         per fold where a block would be shorter than MIN_BLOCK_GAPS gaps; `usable` False when even one
-        block per fold would be (too few rows: the caller picks on the pick rows instead)."""
+        block per fold would be (too few rows: the caller picks on the pick rows instead). fit_noise: the
+        first part's weak rows' whitener when the log states its targets' noise (weak_noise), for the t
+        ratios of moves fitted on those rows (cv_polish.move_candidate)."""
         if folds < 2:
             raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
+        self.fit_noise = fit_noise
         self.parts = [p for p in parts if len(p[0])]
         ys = [np.asarray(y, float) if op is None else np.asarray(op @ y, float) for _, y, op, _ in self.parts]
         self.y = np.concatenate(ys) if ys else np.zeros(0)

@@ -142,5 +142,5 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     if _key(back) != _key(shapes) or len(back) != len(shapes):
         return None  # the expression would not read back as these terms (a zero coefficient)
     c.complexity, c.train_loss, c.holdout_loss = model_size(shapes), loss_fn(y, a @ coef, kind), cv_loss
-    c.measure = lambda: term_identification(a, y, lag)
+    c.measure = lambda: term_identification(a, y, lag, folded.fit_noise)
     return c

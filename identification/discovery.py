@@ -68,6 +68,7 @@ from identification.sparse import (
     sparse_expression,
 )
 from identification.weak_form import overlap_lag
+from identification.weak_noise import Whitener
 
 # Decimal places of pyoperon's infix formatter (fixed-point): 25 keeps ~17 significant digits down to 1e-8.
 _PRECISION = 25
@@ -158,6 +159,9 @@ class DiscoveryEngine:
         self._target: str | None = None
         # weak form (identification.weak_form): (V of the fit rows, V of the holdout rows); set by identify
         self.weak: tuple[Any, Any] | None = None
+        # the fit rows' whitener when the log states its targets' noise (weak_noise; set by identify): the
+        # t ratios of the pick's identification rule under that noise (collinearity.term_identification)
+        self.noise: Whitener | None = None
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
         self._features: dict[int, np.ndarray] = {}  # id(candidate) -> its feature indices in the space
@@ -760,7 +764,7 @@ class DiscoveryEngine:
             engine=f"{self.name}(+polish)",
             predict=lambda X_, cf=cf, k=const: fn(columns.primitives(X_)) @ cf + k,
         )
-        c.weakest_t, c.largest_vif = term_identification(theta[:, active], y, lag)
+        c.weakest_t, c.largest_vif = term_identification(theta[:, active], y, lag, self.noise)
         return c
 
     def _loss(self, y: np.ndarray, pred: np.ndarray, loss: str) -> float:
@@ -848,7 +852,7 @@ class DiscoveryEngine:
                     predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
                 )
             )
-            out[-1].measure = functools.partial(_measure_terms, theta, idx, y, lag)
+            out[-1].measure = functools.partial(_measure_terms, theta, idx, y, lag, self.noise)
             if space_indices is not None:
                 self._features[id(out[-1])] = space_indices[js]
         return out
@@ -1000,10 +1004,11 @@ def gp_rows(n: int, limit: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, limit).round().astype(int))
 
 
-def _measure_terms(theta: np.ndarray, idx: np.ndarray, y: np.ndarray, lag: int | None) -> tuple[float, float]:
+def _measure_terms(theta: np.ndarray, idx: np.ndarray, y: np.ndarray, lag: int | None,
+                   noise: Whitener | None = None) -> tuple[float, float]:
     """(weakest t ratio, largest VIF) of the columns idx of theta (N,p) fitting y (N,): a sparse candidate's
     deferred measure (Candidate.measure)."""
-    return term_identification(theta[:, idx], y, lag)
+    return term_identification(theta[:, idx], y, lag, noise)
 
 
 def _rows_key(X: np.ndarray) -> str:

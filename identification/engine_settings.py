@@ -205,6 +205,10 @@ class SelectionSettings:
     # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t) is not
     # identified by the flight, and not picked while an identified one exists (pareto.select)
     min_t: float = 5.0
+    # on weak rows whose log states its targets' noise (Dataset.target_noise: our .tlog's step rows), those
+    # t ratios use each term's standard error under that noise (collinearity.term_t_ratios), not the
+    # residual's effective sample size; false: the effective sample size everywhere (before session 28)
+    stated_noise_t: bool = True
     # nor is one whose terms the flight barely separates: a term with a VIF above max_vif on the fit rows
     max_vif: float = 100.0
     # nor is one whose self-feedback (d target / d own state, identification.self_feedback) is positive

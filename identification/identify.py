@@ -255,6 +255,8 @@ def identify(
                 "validation": weak_rows(roles.validate.t[okv], roles.validate.flight[okv], weak),
             }
             eng.weak = (ops["train"], ops["pick"])
+        noise = _whitener(roles.fit, ok, ops["train"], j) if settings.selection.stated_noise_t else None
+        eng.noise = noise
         bar = _Bar(name, progress and processes == 1)
         start = time.perf_counter()
         try:
@@ -267,13 +269,13 @@ def identify(
             raise UserError(f"engine {engine} found no expression for {name}", hint="raise --budget")
         out: dict[str, Any] = {"engine_notes": list(getattr(eng, "notes", [])), "lines": []}
         lines = out["lines"]  # this target's warnings, after its engine notes
-        candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"])
+        candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"], noise)
         folded = None
         if settings.selection.cv_folds > 1:  # the pick's evidence: blocked K-fold CV over fit and pick rows
             folded = FoldedRows(
                 [(X[ok], y[ok], ops["train"], _gap_rows(roles.fit.t[ok], ops["train"], gap_s)),
                  (Xp[okp], yp[okp], ops["pick"], _gap_rows(roles.pick.t[okp], ops["pick"], gap_s))],
-                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold)
+                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold, fit_noise=noise)
             if not folded.usable:
                 line = (f"note: {name}: the fit and pick rows ({len(folded.y)}) are too few for "
                         f"{settings.selection.cv_folds}-fold cross-validation with {gap_s:g} s gaps beside "
@@ -334,6 +336,10 @@ def identify(
         else:
             coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         out["identifiability"] = coll.as_dict()
+        # what the pick's t ratios (selection.min_t) took as each term's standard error on the fit rows
+        out["identifiability"]["pick_t_ratios"] = (
+            "under the log's stated noise of the weak rows" if noise is not None
+            else "from the residual's effective sample size")
         lines += describe(name, coll)
         if chosen.standard_errors:
             out["identifiability"]["standard_errors"] = {term: {"coefficient": k, "standard_error": e}

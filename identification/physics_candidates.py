@@ -38,6 +38,7 @@ from identification.model_file import SYMBOLS, complexity
 from identification.sparse import LeastSquaresProblem, sparse_expression
 from identification.true_model import motor_combinations_sym
 from identification.weak_form import overlap_lag
+from identification.weak_noise import Whitener
 
 ENGINE_NAME = "physics"
 _COMB = motor_combinations_sym(SYMBOLS)
@@ -70,10 +71,12 @@ MINIMAL_TERMS: dict[str, tuple[str, ...]] = {
 
 
 def fit_terms(
-    names: Sequence[str], X: np.ndarray, y: np.ndarray, loss: str, operator: np.ndarray | None = None
+    names: Sequence[str], X: np.ndarray, y: np.ndarray, loss: str, operator: np.ndarray | None = None,
+    noise: Whitener | None = None,
 ) -> Candidate:
     """The candidate sum of coefficient x term (TERMS names) fitted on X (N,16), y (N,) (least absolute error
-    for loss 'absolute'); operator: a weak-form matrix V (M,N): fitted on V columns, V y."""
+    for loss 'absolute'); operator: a weak-form matrix V (M,N): fitted on V columns, V y; noise: those weak
+    rows' whitener, for the t ratios under the log's stated noise (collinearity.term_identification)."""
     exprs = [TERMS[n] for n in names]
     cols = expression_columns(exprs, X)
     ok = np.all(np.isfinite(cols), axis=1) & np.isfinite(y)
@@ -96,15 +99,16 @@ def fit_terms(
         return expression_columns(exprs, X_) @ coef
 
     c = Candidate(expr, complexity(expr), loss_fn(b, a @ coef, loss), ENGINE_NAME, predict=predict)
-    c.weakest_t, c.largest_vif = term_identification(a, b, lag)
+    c.weakest_t, c.largest_vif = term_identification(a, b, lag, noise if operator is not None else None)
     return c
 
 
 def physics_candidates(
-    target: str, X: np.ndarray, y: np.ndarray, loss: str, operator: np.ndarray | None = None
+    target: str, X: np.ndarray, y: np.ndarray, loss: str, operator: np.ndarray | None = None,
+    noise: Whitener | None = None,
 ) -> list[Candidate]:
     """The physics-only candidates of a target (module docstring; none for an unknown target name)."""
-    return [fit_terms(names, X, y, loss, operator) for names in TERM_SETS.get(target, ())]
+    return [fit_terms(names, X, y, loss, operator, noise) for names in TERM_SETS.get(target, ())]
 
 
 def minimal_candidate(

@@ -158,14 +158,7 @@ def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> 
     resid = yw - aw @ b_gls
     s2 = float(resid @ resid / (len(yw) - k))
     v_gls = s2 * np.linalg.pinv(aw.T @ aw)
-    pinv = np.linalg.pinv(a / scale)  # (k, M): the plain fit's weights on the weak rows
-    v_plain = np.zeros((k, k))
-    start = 0
-    for ai, _, w in parts:
-        stop = start + len(ai)
-        q = (w.lower().T @ pinv[:, start:stop].T).T  # the weights on the rows' white noise
-        v_plain += s2 * q @ q.T
-        start = stop
+    v_plain = estimate_covariance(np.linalg.pinv(a / scale), [w for _, _, w in parts], s2)
     d = b_plain - b_gls
     lam, vec = np.linalg.eigh(v_plain - v_gls)
     keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
@@ -175,6 +168,21 @@ def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> 
     p = float(stats.chi2.sf(stat, dof)) if dof else 1.0
     se = (np.sqrt(np.maximum(np.diag(v), 0.0)) / scale for v in (v_plain, v_gls))
     return RefitTest(stat, dof, p, b_plain / scale, b_gls / scale, *se)
+
+
+def estimate_covariance(weights: np.ndarray, whiteners: list[Whitener], s2: float) -> np.ndarray:
+    """Covariance (k, k) of the estimates weights @ y (weights (k, M): linear weights on the weak rows of
+    every part, in the order of whiteners) when each part's rows carry noise s2 L L^T (L its whitener's
+    factor) and the parts' noises are independent; in the estimates' units squared."""
+    k = weights.shape[0]
+    out = np.zeros((k, k))
+    start = 0
+    for w in whiteners:
+        stop = start + w.rows
+        q = (w.lower().T @ weights[:, start:stop].T).T  # the weights on the rows' white noise
+        out += s2 * q @ q.T
+        start = stop
+    return out
 
 
 def _column_scale(a: np.ndarray) -> np.ndarray:

@@ -66,6 +66,28 @@ def test_weak_rows_are_folded_after_integration():
     assert rows.loss(sympy.Add(*shapes), "squared") < 1e-9 * np.std(rows.y)  # exact terms: no error
 
 
+def test_a_moves_t_ratios_use_the_fit_rows_stated_noise():
+    """cv_polish's moves are measured on the fit rows as the engine's candidates are: under the whitener
+    of those weak rows when one is given (collinearity.term_identification), else by effective rows."""
+    from identification.collinearity import term_identification
+    from identification.cv_polish import move_candidate
+    from identification.weak_noise import STEP_DIFFERENCE, weak_whitener
+
+    rng = np.random.default_rng(4)
+    X = _rows(1200, 5)
+    t = np.arange(1200) * 0.004
+    op = weak_operator(t, WeakSettings(half_window_s=0.05, stride_s=0.02))
+    shapes = [S["u1"] * S["wz"], S["wy"]]
+    y = expression_columns(shapes, X) @ np.array([1e-3, -0.4]) + np.diff(rng.normal(0, 0.05, 1201)) / 0.004
+    noise = weak_whitener(op, t, None, STEP_DIFFERENCE)
+    for given in (noise, None):
+        rows = FoldedRows([(X, y, op, 5)], folds=5, fit_noise=given)
+        move = move_candidate(shapes, 1.0, rows, "squared", "test")
+        a, yy, lag = rows.fit_part(shapes)
+        assert move.measured().weakest_t == term_identification(a, yy, lag, given)[0]
+    assert term_identification(a, yy, lag, noise)[0] != term_identification(a, yy, lag)[0]
+
+
 def test_the_cross_validated_loss_ranks_the_true_term_over_its_near_twin():
     # u wz against u^2 wz with u in a narrow band (rotors near one level): nearly one column
     rng = np.random.default_rng(11)

@@ -80,7 +80,9 @@ def test_identify_in_the_weak_form_learns_yaw_acceleration(noisy_flight):
     ds, exact = noisy_flight
     model = identify(ds, targets=("dwz",), budget=1, seed=0, weak=WeakSettings(), progress=False)
     assert model.engine["weak_form"]["half_window_s"] == 0.2
-    assert "standard_errors" not in model.extra["identifiability"]["targets"]["dwz"]  # no noise stated
+    record = model.extra["identifiability"]["targets"]["dwz"]
+    assert "standard_errors" not in record  # no noise stated
+    assert record["pick_t_ratios"] == "from the residual's effective sample size"
     assert model.targets["dwz"].metrics["validation"]["r2"] > 0.995
     pred = model.evaluate(ds.xi, ds.u)[:, 0]
     assert r2(exact[:, 5], pred) > 0.995  # the learned point model, against the truth at every row
@@ -129,5 +131,7 @@ def test_identify_refits_by_generalised_least_squares_and_reports_standard_error
     assert errors and all(0 < e["standard_error"] < abs(e["coefficient"]) for e in errors.values())
     refit = model.extra["identifiability"]["targets"]["dwz"]["refit"]
     assert refit["method"] == "generalised least squares" and refit["p_value"] >= refit["level"]
+    assert model.extra["identifiability"]["targets"]["dwz"]["pick_t_ratios"] == (
+        "under the log's stated noise of the weak rows")
     assert "standard error above" in capsys.readouterr().err
     assert model.targets["dwz"].metrics["validation"]["r2"] > 0.995

@@ -8,8 +8,9 @@ import pytest
 import sympy
 
 from identification.candidate import Candidate
+from identification.collinearity import term_t_ratios
 from identification.refit import refit_rows
-from identification.weak_form import WeakSettings, weak_operator, weak_rows
+from identification.weak_form import WeakSettings, overlap_lag, weak_operator, weak_rows
 from identification.weak_noise import (
     STEP_DIFFERENCE,
     STEP_MEAN,
@@ -97,6 +98,29 @@ def test_gls_pins_a_closed_loop_damping_that_weak_least_squares_does_not():
     assert 0.6 < np.median(ses[:, 0]) / np.std(gls) < 1.6  # each fit's standard error matches its spread
     assert 0.6 < np.median(ses[:, 1]) / np.std(ols) < 1.6
     assert sum(passed) >= 10  # a right model: Hausman's test at 1 % rejects about one draw in a hundred
+
+
+def test_the_picks_t_ratios_under_the_stated_noise_match_the_weak_fits_spread():
+    """The pick's t ratio of a term on weak rows (collinearity.term_t_ratios) with the rows' whitener: the
+    standard error it implies, |c| / t, matches the weak least-squares estimate's spread over noise draws
+    (the residual's effective sample size, without the whitener, has no such guarantee under blue noise)."""
+    c_true = 0.05
+    est, se = [], []
+    for seed in range(12):
+        t, w, u, noise = _closed_loop(6000, seed)
+        a, y = _rows(t, w, u, noise)
+        v = weak_rows(t, None, WeakSettings())
+        cols, yw = np.column_stack((np.ones(v.shape[0]), v @ a)), v @ y  # the constant, as the pick fits it
+        coef = np.linalg.lstsq(cols, yw, rcond=None)[0]
+        ratios, vif = term_t_ratios(cols, yw, overlap_lag(v), weak_whitener(v, t, None, STEP_DIFFERENCE))
+        assert np.isnan(ratios[0]) and np.isnan(vif[0])  # the constant is fitted, not measured
+        est.append(-coef[1] / c_true)
+        se.append(abs(coef[1]) / ratios[1] / c_true)
+    assert 0.7 < np.median(se) / np.std(est) < 1.4
+    t_short = np.arange(3000) * DT  # a whitener of other rows: the effective sample size is used
+    short = weak_whitener(weak_rows(t_short, None, WeakSettings()), t_short, None, STEP_DIFFERENCE)
+    assert np.allclose(term_t_ratios(cols, yw, overlap_lag(v), short)[0][1:],
+                       term_t_ratios(cols, yw, overlap_lag(v))[0][1:])
 
 
 def test_the_specification_test_rejects_a_systematic_low_frequency_error():
