@@ -757,21 +757,22 @@ def main() -> int:
         if weak_case:
             raw_train, raw_val = (load_dataset(p, targets="sensors", sensor_settings=RAW_SENSOR_TARGETS,
                                                gravity=gravity) for p in tlogs)
+        rule = (ours or EngineSettings()).selection  # the pick's t rule, as ours runs it
         hidden = unidentifiable_terms(body_reference, raw_train if weak_case else train, gravity, weak_case,
-                                      height_law=height_reference,
-                                      stated_noise=(ours or EngineSettings()).selection.stated_noise_t)
+                                      min_t=rule.min_t, height_law=height_reference,
+                                      stated_noise=rule.stated_noise_t)
         if any(hidden.values()):
-            print(f"  true terms this training flight cannot pin down (t < {SelectionSettings().min_t:g} "
+            print(f"  true terms this training flight cannot pin down (t < {rule.min_t:g} "
                   f"given the true structure): {listed_terms(hidden)}")
         if not args.validation_flight:  # ours keeps its own validation block: fewer rows to fit on
             own = fit_and_pick_rows(raw_train if weak_case else train)
-            fewer = unidentifiable_terms(body_reference, own, gravity, weak_case, height_law=height_reference,
-                                         stated_noise=(ours or EngineSettings()).selection.stated_noise_t)
+            fewer = unidentifiable_terms(body_reference, own, gravity, weak_case, min_t=rule.min_t,
+                                         height_law=height_reference, stated_noise=rule.stated_noise_t)
             fewer = {k: [t for t in v if t not in hidden.get(k, [])] for k, v in fewer.items()}
             if any(fewer.values()):
                 notes.append(f"{case.name}: true terms the whole training flight pins down but its fit and "
                              f"pick rows alone (identify's own blocks, the validation block held out) do not "
-                             f"(t < {SelectionSettings().min_t:g} given the true structure; still counted "
+                             f"(t < {rule.min_t:g} given the true structure; still counted "
                              f"missing and held to the coefficient floor): {listed_terms(fewer)}")
                 print(f"  {notes[-1]}")
         case_rows = []
