@@ -112,6 +112,14 @@ class OffboardLink:
         self._next_heartbeat = 0.0
 
     # -- receiving -----------------------------------------------------------------------------------
+    def silent(self, timeout: float, limit: float) -> bool:
+        """Read the link (up to timeout s wall); True if nothing has come from the autopilot for more than
+        limit s wall. A read after the clock is taken confirms the silence, so a stall of this process (it
+        was descheduled or stopped while the autopilot's messages queued) is not taken for a lost link."""
+        if self.poll(timeout) or time.monotonic() - self.state.last_heard <= limit:
+            return False
+        return not self.poll(0.0)
+
     def poll(self, timeout: float = 0.0) -> list:
         """The autopilot's messages of every queued datagram (up to timeout s wall for the first); the state
         is updated, so after a stall it is the newest, not the oldest queued."""

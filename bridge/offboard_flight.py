@@ -68,7 +68,7 @@ def start_px4_offboard(link: OffboardLink, address: str, rate_hz: float, prestre
     start_ms = st.time_boot_ms
     while st.time_boot_ms - start_ms < prestream_s * 1000.0:
         link.attitude_target(level, 0.0)
-        if not link.poll(0.05) and time.monotonic() - st.last_heard > link_timeout:
+        if link.silent(0.05, link_timeout):
             return f"PX4 went silent for {link_timeout:g} s while setpoints were streamed"
     result = link.set_mode(PX4.offboard)
     if result != mavlink.MAV_RESULT_ACCEPTED:
@@ -93,7 +93,7 @@ class OffboardWatch:
         """Read the link (up to timeout wall s) and check it: '' or why the flight ends."""
         link, st = self.link, self.link.state
         f = link.flavour
-        if not link.poll(timeout) and time.monotonic() - st.last_heard > self.link_timeout:
+        if link.silent(timeout, self.link_timeout):
             return f"link lost: nothing from {f.name} at {self.address} for {self.link_timeout:g} s"
         if link.in_mode(f.offboard):
             self.in_offboard = True

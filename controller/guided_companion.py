@@ -35,7 +35,6 @@ differences of the SITL's timestamps, from its first), so truth rows are taken a
 from __future__ import annotations
 
 import math
-import time
 
 from bridge.messages import mavlink
 from bridge.offboard import ARDUPILOT, OffboardLink
@@ -112,7 +111,7 @@ class GuidedCompanion(OffboardCompanion):
         while abs(-st.position[2] - height) > TAKEOFF_TOLERANCE_M:
             if st.time_boot_ms - start_ms > TAKEOFF_SIM_S * 1000:
                 return f"{name} did not reach {height:g} m within {TAKEOFF_SIM_S:g} s{_said(link)}"
-            if not link.poll(0.1) and time.monotonic() - st.last_heard > s.link_timeout:
+            if link.silent(0.1, s.link_timeout):
                 return f"{name} went silent for {s.link_timeout:g} s during the take-off"
         return self._to_first_point(link, name)
 
@@ -136,7 +135,7 @@ class GuidedCompanion(OffboardCompanion):
             if st.time_boot_ms - resend_ms > RETRY_SIM_MS:
                 resend_ms = st.time_boot_ms
                 link.position_target(target, float(first.yaw))
-            if not link.poll(0.1) and time.monotonic() - st.last_heard > s.link_timeout:
+            if link.silent(0.1, s.link_timeout):
                 return f"{name} went silent for {s.link_timeout:g} s on the way to the first point"
 
     def _until_accepted(self, link: OffboardLink, ask, what: str) -> str:
@@ -153,6 +152,6 @@ class GuidedCompanion(OffboardCompanion):
                         f"{self.offboard.connect_timeout:g} s of its clock{_said(link)}")
             retry = st.time_boot_ms + RETRY_SIM_MS
             while st.time_boot_ms < retry:
-                if not link.poll(0.1) and time.monotonic() - st.last_heard > self.offboard.link_timeout:
+                if link.silent(0.1, self.offboard.link_timeout):
                     return f"ArduPilot went silent while asked to {what}"
 

@@ -104,14 +104,6 @@ def claim_free_instance(first: int, last: int) -> tuple[int, IO[bytes]]:
     raise UserError(f"no PX4 instance in {first}..{last} has free ports", hint="stop other PX4 or simulators")
 
 
-def free_instance(first: int, last: int) -> int:
-    """The first PX4 instance number in [first, last] nobody holds and whose ports are free (not kept: to hold
-    one, use claim_free_instance or `quadsr px4 --instance FIRST-LAST`)."""
-    n, lock = claim_free_instance(first, last)
-    lock.close()
-    return n
-
-
 def check_build(path: Path) -> Path:
     """The absolute PX4 build folder (UserError naming what is missing)."""
     root = Path(path).expanduser().resolve()

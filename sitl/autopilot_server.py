@@ -39,6 +39,8 @@ def serves_autopilot(options: SitlOptions) -> bool:
 class AutopilotSitlServer(SitlServer):
     """A SitlServer whose HIL peer is an autopilot on PX4's simulator transport (TCP or send-first UDP)."""
 
+    NEVER_REPEAT_SENSORS = True  # PX4 fails a magnetometer or barometer whose readings repeat exactly
+
     def __init__(self, options: SitlOptions, autopilot_sysid: int | None = None, max_rtf: float = 0.0,
                  out: TextIO | None = None):
         self.autopilot_sysid = autopilot_sysid

@@ -15,6 +15,7 @@ clamped here (the HIL encoder clamps to PX4's +-16 g and +-2000 deg/s).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import numpy as np
@@ -40,6 +41,13 @@ ISA_LAPSE = 0.0065  # K/m
 ISA_EXPONENT = 5.255877  # g M / (R L)
 
 _NOISE_BLOCK = 4096
+
+# An autopilot fails a sensor whose readings repeat exactly (PX4's DataValidator: more than about 100 equal
+# samples in a row, "MAG #0 failed: STALE!"), and noise-free readings repeat while the vehicle is at rest or
+# in a steady hover. For an autopilot the magnetometer and barometer carry at least this noise: far below a
+# real sensor's, yet enough to change every single-precision sample.
+NEVER_REPEAT_MAG = 1e-4  # gauss std per axis (0.02 % of the earth's field; PX4 compares to 1e-6)
+NEVER_REPEAT_BARO = 0.05  # Pa std (about 4 mm of altitude; a float32 pressure resolves 0.008 Pa at sea level)
 
 
 class GpsFix(NamedTuple):
@@ -100,8 +108,15 @@ def isa_temperature(altitude: float) -> float:
 class SensorModel:
     """Noisy, biased sensor readings of a Quadrotor, deterministic for a seed."""
 
-    def __init__(self, config: SensorsConfig, home: HomeConfig, seed: int = 0):
-        self.config = config.effective()
+    def __init__(self, config: SensorsConfig, home: HomeConfig, seed: int = 0, never_repeat: bool = False):
+        """never_repeat: magnetometer and barometer noise at least NEVER_REPEAT_* (for an autopilot)."""
+        config = config.effective()
+        if never_repeat:
+            mag_noise = tuple(max(n, NEVER_REPEAT_MAG) for n in config.mag.noise)
+            config = dataclasses.replace(
+                config, mag=dataclasses.replace(config.mag, noise=mag_noise),
+                baro=dataclasses.replace(config.baro, noise=max(config.baro.noise, NEVER_REPEAT_BARO)))
+        self.config = config
         self.home = home
         self.seed = seed
         self.frame = LocalFrame.at(home)

@@ -63,6 +63,8 @@ class SitlOptions:
 class SitlServer:
     """One simulated quadrotor serving a companion on the HIL link and ground tools on the ground link."""
 
+    NEVER_REPEAT_SENSORS = False  # a companion takes noise-free readings as they are (sitl.sensors)
+
     def __init__(self, options: SitlOptions, out: TextIO | None = None):
         self.options = options
         self.out = out if out is not None else sys.stdout
@@ -71,7 +73,8 @@ class SitlServer:
         self.quad.reset(
             position=v.initial.position, yaw=v.initial.yaw, rotor_speeds=[options.initial_rotor_speed] * 4
         )
-        self.sensors = SensorModel(v.sensors, v.home, v.simulation.seed)
+        self.sensors = SensorModel(v.sensors, v.home, v.simulation.seed,
+                                   never_repeat=self.NEVER_REPEAT_SENSORS)
         signing = Signing(options.signing_key, link_id=0) if options.signing_key else None
         self.link = self._open_link(signing)
         self.encoder = HilEncoder(v.home, self.link)

@@ -6,6 +6,7 @@ import math
 import re
 import select
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -53,7 +54,10 @@ def gone(pid: int) -> bool:
 
 
 class Gcs:
-    """A ground station on PX4's GCS link (it answers the first local sender), driven by simulated time."""
+    """A ground station on PX4's GCS link (it answers the first local sender), driven by simulated time.
+    Once connected it heartbeats from a thread every 50 ms of wall time, so that PX4 in lockstep at up to
+    about 20x real time still hears one a second of its clock (its ground-station-lost check, COM_DL_LOSS_T,
+    runs on its clock) while the test reads files or waits."""
 
     def __init__(self, port: int, sysid: int):
         self.sysid = sysid
@@ -64,6 +68,9 @@ class Gcs:
         self.armed = False
         self.custom_mode: int | None = None
         self.landed_state = 0
+        self._send = threading.Lock()  # the heartbeat thread and commands share the socket
+        self._closing = threading.Event()
+        self._heart: threading.Thread | None = None
 
     def recv(self, timeout: float = 1.0):
         """One message from PX4 (None after timeout s wall); keeps sim time, position, armed, landed."""
@@ -93,18 +100,32 @@ class Gcs:
         """Heartbeats until PX4 answers with its own."""
         deadline = time.monotonic() + wall_timeout
         while time.monotonic() < deadline:
-            self.conn.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+            self._heartbeat()
             msg = self.recv(0.5)
             if msg is not None and msg.get_type() == "HEARTBEAT":
+                self._heart = threading.Thread(target=self._beat, daemon=True)
+                self._heart.start()
                 return
         raise AssertionError(f"no HEARTBEAT from PX4 (sysid {self.sysid}) within {wall_timeout} s")
+
+    def _heartbeat(self) -> None:
+        with self._send:
+            self.conn.mav.heartbeat_send(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def _beat(self) -> None:
+        while not self._closing.wait(0.05):
+            try:
+                self._heartbeat()
+            except OSError:  # PX4 gone (a test kills it): keep quiet until closed
+                pass
 
     def command(self, cmd: int, *params: float, wall_timeout: float = 20.0) -> int:
         """COMMAND_LONG to PX4; its COMMAND_ACK result (re-sent every 0.5 s wall until acknowledged)."""
         p = list(params) + [0.0] * (7 - len(params))
         deadline = time.monotonic() + wall_timeout
         while time.monotonic() < deadline:
-            self.conn.mav.command_long_send(self.sysid, 1, cmd, 0, *p)
+            with self._send:
+                self.conn.mav.command_long_send(self.sysid, 1, cmd, 0, *p)
             until = time.monotonic() + 0.5
             while time.monotonic() < until:
                 msg = self.recv(0.1)
@@ -130,11 +151,25 @@ class Gcs:
                                      f"position {self.position}, armed {self.armed}, mode "
                                      f"{self.custom_mode}, from {start} to {self.sim_ms} ms; messages {seen}")
 
+    def arm(self, sim_s: float = 30.0) -> int:
+        """Arm; asked again each simulated second while PX4 answers TEMPORARILY_REJECTED (its health checks
+        settle for a few seconds after a landing), for at most sim_s. The last ack result."""
+        start = self.sim_ms
+        while True:
+            result = self.command(mav.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            if result != mav.MAV_RESULT_TEMPORARILY_REJECTED or self.sim_ms - start > sim_s * 1000.0:
+                return result
+            again = self.sim_ms + 1000
+            self.run_until(lambda g, again=again: g.sim_ms >= again, sim_s=5.0)
+
     def takeoff(self) -> int:
         """MAV_CMD_NAV_TAKEOFF to PX4's default altitude (MIS_TAKEOFF_ALT); the ack result."""
         nan = math.nan
         return self.command(mav.MAV_CMD_NAV_TAKEOFF, nan, 0, 0, nan, nan, nan, nan)
 
     def close(self) -> None:
-        """Close the socket."""
+        """Stop heartbeating and close the socket."""
+        self._closing.set()
+        if self._heart is not None:
+            self._heart.join()
         self.conn.close()

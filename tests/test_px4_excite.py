@@ -16,7 +16,7 @@ from px4_run import PX4_DIR, REPO, QuadsrPx4
 from pyulog import ULog
 
 from bridge.vehicle import load_vehicle
-from quadsr.px4_launch import Px4Ports, free_instance
+from quadsr.px4_launch import Px4Ports
 
 WINDOW = re.compile(r"excitation from ([\d.]+) to ([\d.]+) s of PX4's clock")
 R2_ROW = re.compile(r"\| \S+ \((\w+)\) \|.*\| ([-\d.e+]+|nan) \|$")
@@ -29,10 +29,11 @@ def quadsr(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 
 
 def test_excitation_through_px4_offboard_is_identified_from_px4s_ulog(tmp_path):
-    instance = free_instance(1, 9)  # the companion answers from 14540+N (N <= 9)
     work = tmp_path / "px4"
-    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", str(instance), "--work", str(work), "--sensors",
+    # the companion answers from 14540+N (N <= 9); a range, so the instance is held from choice to use
+    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", "1-9", "--work", str(work), "--sensors",
                     "ideal", "--mode", "realtime")
+    instance = run.instance
     try:
         run.wait_for("ready for takeoff", 90.0)
         done = quadsr("excite", "--autopilot", f"udp:127.0.0.1:{Px4Ports(instance).offboard}", "--profile",

@@ -192,3 +192,45 @@ def test_geodesy_scale_and_direction():
     assert lon > 8.545594 and lat == pytest.approx(47.397742, abs=1e-5)
     east = (lon - 8.545594) * metres_per_degree * math.cos(math.radians(47.397742))
     assert east == pytest.approx(1000.0, rel=1e-4)
+
+
+def test_ideal_readings_repeat_at_rest_unless_never_repeat(ideal, realistic):
+    """Noise-free readings of a vehicle at rest repeat exactly (PX4 fails a sensor as stuck after about 100
+    equal samples in a row); for an autopilot (never_repeat) new magnetometer and barometer samples differ
+    from the last as PX4 reads them (float32, compared to 1e-6), never more than 3 in a row equal, while
+    staying within a few centimetres of altitude / 0.6 mgauss of the truth."""
+
+    def longest_repeat(changed: np.ndarray) -> int:
+        run = best = 0
+        for c in changed:
+            run = 0 if c else run + 1
+            best = max(best, run)
+        return best
+
+    def samples(vehicle, never_repeat):
+        quad = Quadrotor(vehicle)
+        model = SensorModel(vehicle.sensors, vehicle.home, 0, never_repeat=never_repeat)
+        mags, baros = [], []
+        for _ in range(600):
+            f = model.sample(quad)
+            if f.new_mag:
+                mags.append(np.float32(f.mag))
+            if f.new_baro:
+                baros.append(np.float32(f.abs_pressure * 100.0))  # Pa, as PX4's sensor_baro
+            quad.step((0.0,) * 4)
+        return np.array(mags), np.array(baros)
+
+    mags, baros = samples(ideal, False)
+    assert np.all(mags == mags[0]) and np.all(baros == baros[0])
+    mags, baros = samples(ideal, True)
+    assert len(mags) >= 150 and len(baros) >= 120
+    assert longest_repeat(np.abs(np.diff(mags, axis=0)).max(axis=1) > 1e-6) <= 3
+    assert longest_repeat(np.diff(baros) != 0.0) <= 3
+    truth_mag = np.array(ideal.sensors.mag.earth_field)
+    assert np.abs(mags - truth_mag).max() < 6e-4  # gauss
+    assert np.abs(baros - isa_pressure(ideal.home.alt)).max() < 0.3  # Pa: about 2.5 cm of altitude
+    # realistic noise is larger than the floor: the same readings either way
+    quad_a, quad_b = Quadrotor(realistic), Quadrotor(realistic)
+    a = SensorModel(realistic.sensors, realistic.home, 4).sample(quad_a)
+    b = SensorModel(realistic.sensors, realistic.home, 4, never_repeat=True).sample(quad_b)
+    assert a == b
