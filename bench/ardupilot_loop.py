@@ -238,10 +238,10 @@ def ceiling(ardupilot: Path, out: Path, wall_s: float = 15.0) -> float:
     """Frames per wall second ArduCopter runs against a stationary responder (a fixed JSON line, no physics,
     no sensors): the most any JSON physics can get from it on this machine now."""
     from bridge.shutdown import die_with_parent
-    from quadsr.ardupilot_process import free_instance
+    from quadsr.ardupilot_process import claim_free_instance
     from sitl.ardupilot_json import sensor_json
 
-    n = free_instance()
+    n, _held = claim_free_instance()  # held until this function returns
     folder = out / "ceiling"
     folder.mkdir(parents=True, exist_ok=True)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

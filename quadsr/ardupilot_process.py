@@ -13,18 +13,25 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import IO
+
+from quadsr.instance_lock import hold
 
 PID = re.compile(r"ArduCopter pid (\d+)")
 TCP_BASE, UDP_BASE = 5760, 9002  # ArduPilot's SERIAL0 MAVLink TCP port and JSON physics UDP port, + 10*N
 
 
-def free_instance(low: int = 100, high: int = 256) -> int:
-    """An ArduPilot instance N in [low, high) whose ports (TCP 5760+10N, 5762+10N, 5763+10N; UDP 9002+10N)
-    are free now. ArduPilot keeps N in one byte (0..255); the default range keeps its ports (6760-8313,
+def claim_free_instance(low: int = 100, high: int = 256) -> tuple[int, IO[bytes]]:
+    """An ArduPilot instance N in [low, high) nobody else holds whose ports (TCP 5760+10N, 5762+10N,
+    5763+10N; UDP 9002+10N) are free now, and its held lock (quadsr.instance_lock: parallel runs never pick
+    the same N). ArduPilot keeps N in one byte (0..255); the default range keeps its ports (6760-8313,
     10002-11552) clear of PX4's 4560+N, 14540+N, 14550 and 18570+N."""
     rng = random.Random(os.getpid() ^ time.monotonic_ns())
     for _ in range(100):
         n = rng.randrange(low, high)
+        lock = hold("ardupilot", n)
+        if lock is None:
+            continue
         socks = []
         try:
             for port in (TCP_BASE + 10 * n, TCP_BASE + 2 + 10 * n, TCP_BASE + 3 + 10 * n):
@@ -34,8 +41,9 @@ def free_instance(low: int = 100, high: int = 256) -> int:
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             socks.append(s)
             s.bind(("127.0.0.1", UDP_BASE + 10 * n))
-            return n
+            return n, lock
         except OSError:
+            lock.close()
             continue
         finally:
             for s in socks:
@@ -48,7 +56,10 @@ class ArduPilotProcess:
 
     def __init__(self, ardupilot: Path, workdir: Path, tlog: Path | None = None, instance: int | None = None,
                  speedup: float = 100.0, extra: list[str] | None = None):
-        self.instance = free_instance() if instance is None else instance
+        self._held: IO[bytes] | None = None  # the instance's lock, while this process runs it
+        if instance is None:
+            instance, self._held = claim_free_instance()
+        self.instance = instance
         self.workdir = workdir
         self.tlog = tlog
         argv = [sys.executable, "-m", "quadsr.cli", "ardupilot", "--ardupilot", str(ardupilot),
@@ -98,4 +109,7 @@ class ArduPilotProcess:
                 self.proc.kill()
                 self.proc.wait()
         self.reader.join(5)
+        if self._held is not None:
+            self._held.close()
+            self._held = None
         return self.proc.returncode

@@ -9,17 +9,16 @@ parameters, dataman, ULogs under `rootfs/log/`).
 
 from __future__ import annotations
 
-import fcntl
 import os
 import shutil
 import socket
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
 from bridge.errors import UserError
 from quadsr.child_process import OutputProcess
+from quadsr.instance_lock import hold
 from quadsr.px4_airframe import AIRFRAME_ID, Px4Airframe
 
 
@@ -79,16 +78,8 @@ def ports_free(ports: Px4Ports) -> bool:
 
 
 def claim_instance(n: int) -> IO[bytes] | None:
-    """Hold PX4 instance n for this process (an exclusive lock on a file in the temp folder, released when the
-    returned file is closed or the process ends); None when another process holds it."""
-    path = Path(tempfile.gettempdir()) / f"quadsr-px4-instance-{n}.lock"
-    lock = open(path, "ab")  # noqa: SIM115 (held open: the lock lives as long as the file)
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        lock.close()
-        return None
-    return lock
+    """Hold PX4 instance n for this process (quadsr.instance_lock); None when another process holds it."""
+    return hold("px4", n)
 
 
 def claim_free_instance(first: int, last: int) -> tuple[int, IO[bytes]]:

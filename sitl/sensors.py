@@ -9,8 +9,9 @@ their own schedules, counted in exchange steps k = time_usec // 4000 since reset
 
 A frame always holds the latest value of every sensor (held between samples) plus flags saying which are new
 this step, so a HIL_SENSOR can be filled every step and HIL_GPS sent on GPS steps. Noise is white Gaussian
-(std per sample) plus a constant bias, from the vehicle file; preset 'ideal' makes both zero. Values are not
-clamped here (the HIL encoder clamps to PX4's +-16 g and +-2000 deg/s).
+(std per sample) plus a constant bias, from the vehicle file; preset 'ideal' makes both zero (for an
+autopilot, never_repeat keeps a floor of noise on the magnetometer and barometer: NEVER_REPEAT_*). Values are
+not clamped here (the HIL encoder clamps to PX4's +-16 g and +-2000 deg/s).
 """
 
 from __future__ import annotations
