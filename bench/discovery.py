@@ -135,7 +135,7 @@ from identification.validate import (  # noqa: E402
     expression_terms,
 )
 from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, overlap_lag, weak_rows  # noqa: E402
-from identification.weak_noise import weak_whitener  # noqa: E402
+from identification.weak_noise import stated_whitener  # noqa: E402
 
 ENGINES = ("discovery", "sparse", "pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
 BASELINES = ("pysindy-physics", "pysindy-poly2", "ols-3term", "operon")
@@ -477,9 +477,8 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
         if weak:
             op = weak_rows(train.t[ok], train.flight[ok], WeakSettings())
             cols, y, lag = np.asarray(op @ cols), op @ y, overlap_lag(op)
-            stated = train.target_noise[j] if train.target_noise is not None else None
-            if stated is not None and stated_noise:
-                noise = weak_whitener(op, train.t[ok], train.flight[ok], stated)
+            if stated_noise:
+                noise = stated_whitener(train, ok, op, j)
         t, _ = term_t_ratios(cols, y, lag, noise)
         if t is None:
             continue

@@ -276,10 +276,9 @@ def _confounders(
     return tuple(worst[j] for j in sorted(worst))
 
 
-def weakest_t(columns: np.ndarray, y: np.ndarray, max_lag: int | None = None,
-              noise: Whitener | None = None) -> float:
+def weakest_t(columns: np.ndarray, y: np.ndarray, max_lag: int | None = None) -> float:
     """The smallest t ratio |c_j| / se_j over a linear model's non-constant terms (term_identification)."""
-    return term_identification(columns, y, max_lag, noise)[0]
+    return term_identification(columns, y, max_lag)[0]
 
 
 def term_identification(

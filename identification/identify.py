@@ -69,7 +69,7 @@ from identification.refit import refit_rows
 from identification.self_feedback import mark_self_feedback
 from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
-from identification.weak_noise import Whitener, uncertain_terms, weak_whitener
+from identification.weak_noise import stated_whitener, uncertain_terms
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
@@ -255,7 +255,7 @@ def identify(
                 "validation": weak_rows(roles.validate.t[okv], roles.validate.flight[okv], weak),
             }
             eng.weak = (ops["train"], ops["pick"])
-        noise = _whitener(roles.fit, ok, ops["train"], j) if settings.selection.stated_noise_t else None
+        noise = stated_whitener(roles.fit, ok, ops["train"], j) if settings.selection.stated_noise_t else None
         eng.noise = noise
         bar = _Bar(name, progress and processes == 1)
         start = time.perf_counter()
@@ -310,7 +310,7 @@ def identify(
         if settings.selection.refit_with_pick_rows or folded is not None:
             whiteners = None
             if settings.selection.refit_gls and weak is not None:
-                whiteners = [_whitener(part, mask, ops[key], j)
+                whiteners = [stated_whitener(part, mask, ops[key], j)
                              for part, mask, key in ((roles.fit, ok, "train"), (roles.pick, okp, "pick"))]
             refit = refit_rows(chosen, [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])], loss,
                                settings.sparse.irls_iterations, settings.sparse.irls_max_terms, whiteners)
@@ -515,14 +515,6 @@ def _excitation(
         "flag": line,
     }
     return minimal, line, record
-
-
-def _whitener(rows: Dataset, mask: np.ndarray, operator: Any, target: int) -> Whitener | None:
-    """The whitener of a role's weak rows (its rows under mask) for target index target, when its log
-    states that target's raw noise (Dataset.target_noise); None otherwise."""
-    if operator is None or rows.target_noise is None or rows.target_noise[target] is None or not mask.any():
-        return None
-    return weak_whitener(operator, rows.t[mask], rows.flight[mask], rows.target_noise[target])
 
 
 def _gap_rows(t: np.ndarray, operator: Any, gap_s: float) -> int:

@@ -99,7 +99,7 @@ def fit_terms(
         return expression_columns(exprs, X_) @ coef
 
     c = Candidate(expr, complexity(expr), loss_fn(b, a @ coef, loss), ENGINE_NAME, predict=predict)
-    c.weakest_t, c.largest_vif = term_identification(a, b, lag, noise if operator is not None else None)
+    c.weakest_t, c.largest_vif = term_identification(a, b, lag, noise)
     return c
 
 

@@ -23,11 +23,15 @@ large for those dampings and 3x too small for wz''s).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import linalg, sparse, stats
 
 from identification.targets import contiguous_runs, nominal_step
+
+if TYPE_CHECKING:
+    from identification.dataset import Dataset
 
 # the raw targets' noise as a filter of the sensor's white noise, weights on consecutive samples
 STEP_DIFFERENCE = (-1.0, 1.0)  # gyro difference over a step interval (its mean derivative there)
@@ -141,6 +145,15 @@ class RefitTest:
                 "hausman_statistic": round(float(self.statistic), 4), "dof": int(self.dof),
                 "p_value": float(f"{self.p_value:.4g}"), "level": SPECIFICATION_LEVEL}
 
+
+
+def stated_whitener(rows: Dataset, mask: np.ndarray, operator: sparse.spmatrix | None,
+                    target: int) -> Whitener | None:
+    """The whitener of a role's weak rows (its rows under mask) for target index target, when its log
+    states that target's raw noise (Dataset.target_noise); None otherwise."""
+    if operator is None or rows.target_noise is None or rows.target_noise[target] is None or not mask.any():
+        return None
+    return weak_whitener(operator, rows.t[mask], rows.flight[mask], rows.target_noise[target])
 
 def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> RefitTest | None:
     """RefitTest over parts (weak columns (M_i, k), weak target (M_i,), the rows' whitener); None when the
