@@ -111,14 +111,61 @@ def hub_columns(inputs: np.ndarray, offsets: np.ndarray, powers: int, airspeed: 
     """u_i^2 / H_i^k (N, 4*powers), rotor-major (rotor i's k = 1..powers together), then with airspeed
     s_i / H_i^k likewise (the hubs' squared in-plane airspeeds); hub heights at or below zero (a rotor below
     the ground: impossible) give inf, so no fit keeps such offsets."""
-    H = hub_heights(inputs, offsets)
-    with np.errstate(all="ignore"):
-        H = np.where(H > 0.0, H, 0.0)
-        out = [inputs[:, 3 + i] ** 2 / H[:, i] ** k for i in range(4) for k in range(1, powers + 1)]
-        if airspeed:
-            S = hub_airspeeds(inputs, offsets)
-            out += [S[:, i] / H[:, i] ** k for i in range(4) for k in range(1, powers + 1)]
-    return np.column_stack(out)
+    return HubColumns(inputs, powers, airspeed).columns(offsets)
+
+
+Block = tuple[np.ndarray, np.ndarray | None]  # a rotor's thrust columns and its airspeed columns (or None)
+
+
+class HubColumns:
+    """hub_columns of fixed inputs, each rotor's block kept for its offsets: a finite-difference step moves
+    one rotor's hub, and the other three blocks are reused (a block depends on its own rotor's offsets
+    only). Each block is taken through `weak` (the weak form's test functions, (N', N)) and then `project`
+    (a linear map of the rows, such as removing the span of the model's other terms) when given: both are
+    linear, so a law's columns combined from the blocks are its columns taken through them."""
+
+    def __init__(self, inputs: np.ndarray, powers: int, airspeed: bool = False,
+                 weak: np.ndarray | None = None,
+                 project: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        self.inputs, self.powers, self.airspeed = inputs, powers, airspeed
+        self.steps = ([] if weak is None else [lambda A: np.asarray(weak @ A)]) + ([] if project is None
+                                                                                   else [project])
+        self.u2 = [inputs[:, 3 + i] ** 2 for i in range(4)]
+        self._blocks: list[dict[bytes, Block]] = [{} for _ in range(4)]
+
+    def _compute(self, offsets: np.ndarray, rotors: list[int]) -> dict[int, Block]:
+        H = hub_heights(self.inputs, offsets)
+        S = hub_airspeeds(self.inputs, offsets) if self.airspeed else None
+        out = {}
+        with np.errstate(all="ignore"):
+            H = np.where(H > 0.0, H, 0.0)
+            for i in rotors:
+                thrust = np.column_stack([self.u2[i] / H[:, i] ** k for k in range(1, self.powers + 1)])
+                air = None if S is None else np.column_stack([S[:, i] / H[:, i] ** k
+                                                              for k in range(1, self.powers + 1)])
+                for step in self.steps:
+                    thrust = step(thrust)
+                    air = None if air is None else step(air)
+                out[i] = (thrust, air)
+        return out
+
+    def blocks(self, offsets: np.ndarray) -> list[Block]:
+        """Each rotor's (thrust block (N, powers), airspeed block or None) at offsets (4, 3) m FRD."""
+        offsets = np.asarray(offsets, float).reshape(4, 3)
+        keys = [offsets[i].tobytes() for i in range(4)]
+        missing = [i for i in range(4) if keys[i] not in self._blocks[i]]
+        if missing:
+            for i, block in self._compute(offsets, missing).items():
+                if len(self._blocks[i]) >= 64:  # a jacobian's steps and the points they are taken at
+                    self._blocks[i].clear()
+                self._blocks[i][keys[i]] = block
+        return [self._blocks[i][keys[i]] for i in range(4)]
+
+    def columns(self, offsets: np.ndarray) -> np.ndarray:
+        """hub_columns' columns (N, 4*powers or 8*powers) at offsets (4, 3) m FRD."""
+        blocks = self.blocks(offsets)
+        parts = [b[0] for b in blocks] + ([b[1] for b in blocks] if self.airspeed else [])
+        return np.hstack(parts)
 
 
 def fit_hub_law(
@@ -153,23 +200,28 @@ def fit_hub_law(
         r = r.reshape(4, 3)
         return {"force": np.ones(4), "roll": -r[:, 1], "pitch": r[:, 0]}[arm]
 
+    def project(A: np.ndarray) -> np.ndarray:
+        """A's columns less their part in the span of `rest` (variable projection)."""
+        return A - Q @ (Q.T @ A)
+
+    tables = {a: HubColumns(inputs, powers, a, weak, project) for a in (False, True)}
+
     def law_cols(r: np.ndarray, with_airspeed: bool) -> np.ndarray:
-        L = hub_columns(inputs, r.reshape(4, 3), powers, with_airspeed)
+        L = tables[with_airspeed].columns(r)
+        if arm is None:
+            return L
         # a hub below the ground gives inf columns (and inf - inf in a shared law): solve() rejects those
         # offsets, so numpy's warnings would only reach the user's terminal
         with np.errstate(invalid="ignore", over="ignore"):
-            if arm is not None:
-                a = arms(r)
-                blocks = L.shape[1] // (4 * powers)
-                L = np.hstack([sum(a[i] * L[:, (b * 4 + i) * powers:(b * 4 + i + 1) * powers]
-                                   for i in range(4)) for b in range(blocks)])
-            return L if weak is None else np.asarray(weak @ L)
+            a = arms(r)
+            blocks = L.shape[1] // (4 * powers)
+            return np.hstack([sum(a[i] * L[:, (b * 4 + i) * powers:(b * 4 + i + 1) * powers]
+                                  for i in range(4)) for b in range(blocks)])
 
     def solve(r: np.ndarray, with_airspeed: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        L = law_cols(r, with_airspeed)
-        if not np.all(np.isfinite(L)):
-            return np.full(len(y), 1e3 * scale), np.zeros(L.shape[1])
-        L_perp = L - Q @ (Q.T @ L)
+        L_perp = law_cols(r, with_airspeed)  # already without its part in the span of rest
+        if not np.all(np.isfinite(L_perp)):
+            return np.full(len(y), 1e3 * scale), np.zeros(L_perp.shape[1])
         norms = np.linalg.norm(L_perp, axis=0)
         norms = np.where(norms > 0.0, norms, 1.0)
         b, *_ = np.linalg.lstsq(L_perp / norms, y_perp, rcond=None)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import sympy
+from scipy import sparse
 
 from bridge.errors import UserError
 from bridge.vehicle import load_vehicle
@@ -25,7 +26,7 @@ from identification.engine import split_holdout
 from identification.engine_settings import DiscoverySettings, SelectionSettings, load_engine_settings
 from identification.feature_space import grow_unary
 from identification.height_law import body_values, height_law_error, height_terms
-from identification.hub_law import HUB_PRIMITIVES, HubLaw, fit_hub_law, hub_heights
+from identification.hub_law import HUB_PRIMITIVES, HubColumns, HubLaw, fit_hub_law, hub_columns, hub_heights
 from identification.pareto import attach_holdout, select
 from identification.true_model import random_states, true_body_expressions
 
@@ -254,6 +255,28 @@ def test_offsets_that_put_a_hub_below_the_ground_are_rejected_without_numpy_warn
         law = fit_hub_law(primitive_matrix(X, HUB_PRIMITIVES), body_values(truth, X), rest, 3, start=below,
                           max_evaluations=5, arm="roll")
     assert law is not None and np.all(np.isfinite(law.coefficients))
+
+
+def test_a_rotors_columns_are_reused_while_its_hub_stays_and_match_a_fresh_computation():
+    # A finite-difference step moves one hub: the other rotors' columns (taken to the weak rows) are kept,
+    # and what comes back is what the columns from scratch give.
+    inputs = primitive_matrix(_rows(400, 5), HUB_PRIMITIVES)
+    n = len(inputs)
+    centres, window = np.arange(9, n - 9, 7), np.arange(-9, 10)  # test functions: bumps 19 rows wide
+    weak = sparse.csr_matrix((np.tile(np.hanning(21)[1:-1], len(centres)),
+                              (np.repeat(np.arange(len(centres)), len(window)),
+                               (centres[:, None] + window).ravel())), (len(centres), n))
+    r = np.asarray(GROUND_VEHICLE.rotor_arms, float)
+    moved = r.copy()
+    moved[2, 0] += 1e-4
+    for airspeed in (False, True):
+        table = HubColumns(inputs, 3, airspeed, weak)
+        first = table.blocks(r)
+        second = table.blocks(moved)
+        assert all(second[i] is first[i] for i in (0, 1, 3)) and second[2] is not first[2]
+        fresh = weak @ hub_columns(inputs, moved, 3, airspeed)
+        np.testing.assert_allclose(table.columns(moved), fresh, rtol=1e-12, atol=0.0)
+        assert not np.allclose(table.columns(r), fresh, rtol=1e-9, atol=0.0)
 
 
 def _engine_fit(target: str, vehicle, settings: DiscoverySettings, seed: int = 7):
