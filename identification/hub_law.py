@@ -115,6 +115,9 @@ def hub_columns(inputs: np.ndarray, offsets: np.ndarray, powers: int, airspeed: 
 
 
 Block = tuple[np.ndarray, np.ndarray | None]  # a rotor's thrust columns and its airspeed columns (or None)
+# blocks kept per rotor, least recently used dropped first: a jacobian by differences needs a rotor's block
+# at the point and one step at a time (a block of 15,000 point rows and 4 powers is 0.5 MB)
+KEPT_BLOCKS = 8
 
 
 class HubColumns:
@@ -154,12 +157,16 @@ class HubColumns:
         offsets = np.asarray(offsets, float).reshape(4, 3)
         keys = [offsets[i].tobytes() for i in range(4)]
         missing = [i for i in range(4) if keys[i] not in self._blocks[i]]
-        if missing:
-            for i, block in self._compute(offsets, missing).items():
-                if len(self._blocks[i]) >= 64:  # a jacobian's steps and the points they are taken at
-                    self._blocks[i].clear()
-                self._blocks[i][keys[i]] = block
-        return [self._blocks[i][keys[i]] for i in range(4)]
+        computed = self._compute(offsets, missing) if missing else {}
+        out = []
+        for i, key in enumerate(keys):
+            kept = self._blocks[i]
+            block = computed[i] if i in computed else kept.pop(key)
+            kept[key] = block  # the most recently used last
+            if len(kept) > KEPT_BLOCKS:
+                del kept[next(iter(kept))]
+            out.append(block)
+        return out
 
     def columns(self, offsets: np.ndarray) -> np.ndarray:
         """hub_columns' columns (N, 4*powers or 8*powers) at offsets (4, 3) m FRD."""
