@@ -146,7 +146,6 @@ class RefitTest:
                 "p_value": float(f"{self.p_value:.4g}"), "level": SPECIFICATION_LEVEL}
 
 
-
 def stated_whitener(rows: Dataset, mask: np.ndarray, operator: sparse.spmatrix | None,
                     target: int) -> Whitener | None:
     """The whitener of a role's weak rows (its rows under mask) for target index target, when its log
@@ -154,6 +153,7 @@ def stated_whitener(rows: Dataset, mask: np.ndarray, operator: sparse.spmatrix |
     if operator is None or rows.target_noise is None or rows.target_noise[target] is None or not mask.any():
         return None
     return weak_whitener(operator, rows.t[mask], rows.flight[mask], rows.target_noise[target])
+
 
 def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> RefitTest | None:
     """RefitTest over parts (weak columns (M_i, k), weak target (M_i,), the rows' whitener); None when the
