@@ -105,6 +105,11 @@ def check_settings(settings: DiscoverySettings) -> None:
                         f"'hub_law_evaluations' >= 1, got {settings.hub_law_fits}, "
                         f"{settings.hub_law_powers} and {settings.hub_law_evaluations}",
                         hint="hub_law_fits 0: off; powers 4; evaluations 400")
+    if not 0.0 <= settings.hub_law_min_height < 1.0:
+        raise UserError("discovery settings: key 'hub_law_min_height' must be in [0, 1), got "
+                        f"{settings.hub_law_min_height}",
+                        hint="the lowest hub height allowed, as a fraction of the CG's height: 0.25; 0: any "
+                             "hub above the ground")
     if not 0.0 <= settings.abs_sign_share <= 1.0:
         raise UserError(f"discovery settings: key 'abs_sign_share' must be in [0, 1], got "
                         f"{settings.abs_sign_share}", hint="0.05: |x| only where x reaches both signs")
@@ -277,17 +282,22 @@ class DiscoveryEngine:
                 fit_law = False
                 laws += 1
                 added = self._add_hub_law(best, space, columns, F, y, X, pool)
-                if added is not None:
-                    # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
-                    before = (best, len(candidates), space, columns, F, Z, pool)
-                    series = series or before
-                    space, law, columns = added
-                    F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
-                    Z = np.hstack([Z, _standardized(F[:, [law]])])
-                    off = heights = space.height_features()
-                    pool = [i for i in pool if not off[i]] + basis.add_first(F, [law])
-                    swaps = [i for i in swaps if not off[i]]
-                    law_now = law in pool
+                if added is None:
+                    # the series' rounds had ended where the law was due: they end as with no law
+                    key = "hub_law" if series is None else "hub_law_refit"
+                    self.stats[key] = ("none: no finite fit with every hub above "
+                                       f"{s.hub_law_min_height:g} of the CG's height at every row")
+                    break
+                # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
+                before = (best, len(candidates), space, columns, F, Z, pool)
+                series = series or before
+                space, law, columns = added
+                F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
+                Z = np.hstack([Z, _standardized(F[:, [law]])])
+                off = heights = space.height_features()
+                pool = [i for i in pool if not off[i]] + basis.add_first(F, [law])
+                swaps = [i for i in swaps if not off[i]]
+                law_now = law in pool
             model_terms = self._features.get(id(best), np.zeros(0, int))
             model_cols = F[:, model_terms]
             if zf is None or zf[0] is not Z:  # Z's NaN-free copy and column sums, once per space
@@ -445,7 +455,8 @@ class DiscoveryEngine:
         arm = {"fx": "force", "fy": "force", "fz": "force", "dwx": "roll", "dwy": "pitch"}.get(self._target) \
             if s.hub_law_shared else None
         fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
-                             s.hub_law_airspeed or (s.hub_law_refit_airspeed and bool(space.laws)), arm)
+                             s.hub_law_airspeed or (s.hub_law_refit_airspeed and bool(space.laws)), arm,
+                             s.hub_law_min_height)
         self.timings["hub_law"] = self.timings.get("hub_law", 0.0) + time.perf_counter() - clock
         if fitted is None:
             return None

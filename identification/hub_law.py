@@ -25,6 +25,12 @@ are the rotor hubs (0.16, +-0.16, -0.03 m; true 0.164, +-0.159, -0.04 from the C
 6x. The engine adds L as one feature with its b_ik fixed (one column, one coefficient: a series of
 collinear columns would fail the pick's VIF rule), in place of the series.
 
+No hub may come nearer the ground than a quarter of the CG's height at any row (MIN_HUB_HEIGHT_FRACTION;
+the engine's `hub_law_min_height`): there 1/H_i^k is a spike at the flight's lowest rows that fits the
+target's errors, not a ground effect. On realistic-sensor flights the fit went there (hubs 0.5-0.9 m from the
+CG at 0.0-0.03 of its height) and crawled to its evaluation budget along that edge; a stage now stops at the
+first iterate that gets there and the fit gives no law.
+
 A rotor's thrust is not u_i^2 alone: it grows with the hub's in-plane airspeed (translational lift), and the
 ground multiplies all of it. With `airspeed` the law holds that part as well,
 
@@ -115,6 +121,22 @@ def hub_columns(inputs: np.ndarray, offsets: np.ndarray, powers: int, airspeed: 
 
 
 Block = tuple[np.ndarray, np.ndarray | None]  # a rotor's thrust columns and its airspeed columns (or None)
+# a law whose hub comes nearer the ground than this fraction of the CG's height, at some row of the flight, is
+# no law: its 1/H_i^k columns are then a spike at those rows that fits the target's errors there (realistic
+# closed-loop fang-chen-aero: the hubs went to 0.0-0.03 of the CG's height, 0.5-0.9 m from the CG, and the
+# fit crawled to its budget along that edge; the true hubs stay above 0.8 of it on the bench's truth
+# flights). A stage stops at the first iterate that gets there (fit_hub_law)
+MIN_HUB_HEIGHT_FRACTION = 0.25
+
+
+def hubs_reach_ground(inputs: np.ndarray, offsets: np.ndarray,
+                      fraction: float = MIN_HUB_HEIGHT_FRACTION) -> bool:
+    """Whether some hub, at offsets (4, 3) m FRD, is nearer the ground than `fraction` of the CG's height
+    (inputs[:, 0], m) at some row (inputs: HUB_PRIMITIVES columns); at or below the ground with fraction 0."""
+    H = hub_heights(inputs, np.asarray(offsets, float).reshape(4, 3))
+    return not bool(np.all(H > fraction * inputs[:, [0]]))
+
+
 # blocks kept per rotor, least recently used dropped first: a jacobian by differences needs a rotor's block
 # at the point and one step at a time (a block of 15,000 point rows and 4 powers is 0.5 MB)
 KEPT_BLOCKS = 8
@@ -185,6 +207,7 @@ def fit_hub_law(
     start: np.ndarray | None = None,
     airspeed: bool = False,
     arm: str | None = None,
+    min_height: float = MIN_HUB_HEIGHT_FRACTION,
 ) -> HubLaw | None:
     """The hub law that, beside `rest` (N', m: the model's other terms and a constant), best fits y (N',) in
     least squares. inputs: HUB_PRIMITIVES columns (N, 12) of the fit rows; weak: the weak form's test
@@ -194,7 +217,9 @@ def fit_hub_law(
     start: the offsets (4, 3) m to start from, all twelve fitted (None: every hub at the CG, the in-plane
     arms fitted first, then all twelve: module docstring); airspeed: the hubs' in-plane airspeed
     terms too; arm: one law shared by the rotors, each rotor's share its arm for "force" (1), "roll" (-r_iy)
-    or "pitch" (r_ix) (None: a law per rotor). None when no finite fit."""
+    or "pitch" (r_ix) (None: a law per rotor). None when no finite fit, or when a stage ends with a hub
+    nearer the ground than min_height of the CG's height at some row (hubs_reach_ground): the later stages
+    are not run."""
     inputs = np.asarray(inputs, float)
     y = np.asarray(y, float)
     Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
@@ -240,14 +265,23 @@ def fit_hub_law(
         return None
     if arm is not None and start is None:
         # every hub at the CG has no moment arm: a shared torque law starts where the free law ends
-        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations)
-        start = None if free is None else np.asarray(free.offsets)
+        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, min_height=min_height)
+        if free is None:
+            return None
+        start = np.asarray(free.offsets)
     x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
 
     def descend(offsets: Callable[[np.ndarray], np.ndarray], p0: np.ndarray) -> np.ndarray:
-        """The parameters p (of the offsets(p), m) least_squares reaches from p0 within the budget."""
+        """The parameters p (of the offsets(p), m) least_squares reaches from p0 within the budget, or the
+        first iterate whose hubs reach the ground (the stage ends there: its law is no law)."""
+
+        def stop_at_ground(p: np.ndarray) -> None:
+            if hubs_reach_ground(inputs, offsets(p), min_height):
+                raise StopIteration  # least_squares returns this iterate
+
         return least_squares(lambda p: solve(offsets(p))[0] / scale, p0, bounds=(-bound, bound),
-                             x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations).x
+                             x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations,
+                             callback=stop_at_ground).x
 
     if max_evaluations > 0 and start is None:
         # the in-plane arms first, the heights held at the CG's, then all twelve (module docstring: from
@@ -260,10 +294,14 @@ def fit_hub_law(
             return r
 
         x0[planar] = descend(in_plane, x0[planar])
+        if hubs_reach_ground(inputs, x0, min_height):
+            return None
     if max_evaluations > 0:
         x = descend(lambda r: r, x0)
     else:  # the offsets as given: only the coefficients fitted
         x = x0
+    if hubs_reach_ground(inputs, x, min_height):
+        return None
     # the airspeed terms at the offsets the rotor speeds place: near r = 0 the four hubs' airspeeds are one
     # column, and a fit of the offsets through them would differentiate a rank-deficient projection
     residual, b = solve(x, airspeed)

@@ -26,7 +26,16 @@ from identification.engine import split_holdout
 from identification.engine_settings import DiscoverySettings, SelectionSettings, load_engine_settings
 from identification.feature_space import grow_unary
 from identification.height_law import body_values, height_law_error, height_terms
-from identification.hub_law import HUB_PRIMITIVES, HubColumns, HubLaw, fit_hub_law, hub_columns, hub_heights
+from identification.hub_law import (
+    HUB_PRIMITIVES,
+    MIN_HUB_HEIGHT_FRACTION,
+    HubColumns,
+    HubLaw,
+    fit_hub_law,
+    hub_columns,
+    hub_heights,
+    hubs_reach_ground,
+)
 from identification.pareto import attach_holdout, select
 from identification.true_model import random_states, true_body_expressions
 
@@ -194,6 +203,31 @@ def test_the_law_is_kept_only_on_evidence_against_the_series():
     assert str(select(off, SelectionSettings(), float(np.std(yh))).expression) == str(best.expression)
 
 
+def test_where_the_law_would_take_the_hubs_to_the_ground_the_rounds_end_as_with_no_law():
+    # Errors that grow near the ground (no law in the rows): the series' pick holds height terms, so a law
+    # is due; its fit takes the hubs to the ground (hub_law_min_height), no law is added, and the model is
+    # the one the engine reaches with the law off. With the rule off (0) the law is fitted.
+    X = _rows(800, 7)
+    _, far = _law("fz")
+    h = -X[:, 2]
+    y = body_values(far, X) + np.random.default_rng(1).standard_normal(len(X)) * 0.05 * (h.min() / h) ** 4
+    Xt, yt, Xh, yh = split_holdout(X, y)
+
+    def pick(settings: DiscoverySettings) -> tuple[str, dict]:
+        engine = DiscoveryEngine(settings)
+        cands = engine.fit(Xt, yt, "fz", 2, 0, "absolute", None, (Xh, yh))
+        attach_holdout(cands, Xh, yh, "absolute")
+        return str(select(cands, SelectionSettings(), float(np.std(yh))).expression), engine.stats
+
+    ruled, stats = pick(DiscoverySettings())
+    assert stats["hub_law"].startswith("none: no finite fit with every hub above 0.25"), stats
+    assert ruled == pick(DiscoverySettings(hub_law_fits=0))[0]
+    off = DiscoverySettings(hub_law_min_height=0.0, hub_law_fits=1, hub_law_evaluations=30)  # a short fit
+    assert pick(off)[1]["hub_law"].startswith(("fitted", "kept")), stats
+    with pytest.raises(UserError, match="hub_law_min_height"):
+        DiscoveryEngine(DiscoverySettings(hub_law_min_height=1.0))
+
+
 def test_the_default_is_the_shared_law_and_the_copyable_files_give_the_earlier_engines():
     default = DiscoverySettings()
     assert default.hub_law_fits == 2 and default.hub_law_refit_airspeed and not default.hub_law_airspeed
@@ -249,12 +283,33 @@ def test_offsets_that_put_a_hub_below_the_ground_are_rejected_without_numpy_warn
     X = _rows(500, 3)
     truth, far = _law("dwx")
     rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+    inputs = primitive_matrix(X, HUB_PRIMITIVES)
     below = np.asarray(GROUND_VEHICLE.rotor_arms) + [0.0, 0.0, 0.5]  # 0.5 m under the CG: under the rows' h
+    assert hubs_reach_ground(inputs, below)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        law = fit_hub_law(primitive_matrix(X, HUB_PRIMITIVES), body_values(truth, X), rest, 3, start=below,
-                          max_evaluations=5, arm="roll")
-    assert law is not None and np.all(np.isfinite(law.coefficients))
+        # the hubs stay under the ground (every residual there is the same rejection): no law, where a law
+        # of zero coefficients at those offsets came back before, and no warning on the way
+        law = fit_hub_law(inputs, body_values(truth, X), rest, 3, start=below, max_evaluations=5, arm="roll")
+    assert law is None
+
+
+def test_a_law_that_fits_the_errors_near_the_ground_with_its_hubs_there_is_no_law():
+    # On a noisy flight the fit took the hubs to the ground (0.0-0.03 of the CG's height) where 1/H_i^k is
+    # a spike that fits the largest errors, the lowest rows'. Here the rows hold no law, only errors that
+    # grow near the ground: no law comes back, free or shared. The true law on the same rows does.
+    X = _rows(400, 4)
+    truth, far = _law("fz")
+    rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+    inputs = primitive_matrix(X, HUB_PRIMITIVES)
+    h = inputs[:, 0]
+    errors = np.random.default_rng(0).standard_normal(len(X)) * 0.05 * (h.min() / h) ** 6  # m/s^2
+    for arm in (None, "force"):
+        assert fit_hub_law(inputs, body_values(far, X) + errors, rest, 3, arm=arm) is None
+    law = fit_hub_law(inputs, body_values(truth, X), rest, 3)
+    assert law is not None and not hubs_reach_ground(inputs, np.asarray(law.offsets))
+    H = hub_heights(inputs, np.asarray(law.offsets))
+    assert np.min(H / h[:, None]) > 2 * MIN_HUB_HEIGHT_FRACTION  # far from the rule on a real law
 
 
 def test_a_rotors_columns_are_reused_while_its_hub_stays_and_match_a_fresh_computation():
