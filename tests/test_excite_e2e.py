@@ -88,8 +88,10 @@ def test_paper_profiles_fly_open_loop_from_altitude(sitl_at_altitude, tmp_path):
     assert "excite paper-train" in run.stderr and "100%" in run.stderr  # the progress bar, on stderr
     ds = load_dataset(train)
     # held commands: the rows whose 7-point stencil is clear of a command change (tests/test_dataset_tlog.py
-    # counts them from the log), every other step dropped with its reason
-    assert 150 < len(ds) < 501 - 4 and sum(ds.drop_reasons.values()) == 501 - len(ds)
+    # counts them from the log), every other step dropped with its reason; a SITL still waiting for its client
+    # resends its time-0 datagram, which the log may hold once more (dropped as a duplicate, not a step)
+    steps = {k: v for k, v in ds.drop_reasons.items() if not k.startswith("duplicate time-0 datagram")}
+    assert 150 < len(ds) < 501 - 4 and sum(steps.values()) == 501 - len(ds), ds.drop_reasons
     assert any("command change" in k for k in ds.drop_reasons)
     fit = r2(ds.targets, physics_targets(ds, "none"))
     assert (fit > 0.99999).all(), fit
