@@ -13,6 +13,8 @@ from bridge.errors import UserError
 DEFAULT_PX4 = "../shared/px4"
 CONNECTED = "autopilot connected"
 READY = "Ready for takeoff"
+DISCONNECTED = "autopilot disconnected"
+NOTICE_S = 5.0  # wall s the SITL gets to log PX4's dropped link before it is stopped
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -174,6 +176,11 @@ def _supervise(args, ports, work: Path, model: str, sitl, px4, stop: dict) -> in
             say("PX4 is ready for takeoff")
             ready_said = True
         if px4.proc.poll() is not None:
+            # The SITL's log should say why its vehicle stopped: wait (bounded) for it to see the link drop.
+            deadline = time.monotonic() + NOTICE_S
+            while (not any(DISCONNECTED in line for line in sitl.output) and sitl.proc.poll() is None
+                   and time.monotonic() < deadline):
+                time.sleep(0.05)
             say(f"error: PX4 exited (code {px4.proc.returncode}); stopping the SITL. Its last output "
                 f"({work / 'px4.log'}):\n{px4.tail()}", err=True)
             return 1

@@ -38,6 +38,7 @@ class SitlProcess:
         self.proc: subprocess.Popen | None = None
         self._lines: queue.Queue[str] = queue.Queue()
         self.output: list[str] = []
+        self._pump_thread: threading.Thread | None = None
 
     def start(self, timeout: float = 20.0) -> SitlProcess:
         """Start the SITL and wait until it says it is listening; raise UserError if it does not."""
@@ -46,7 +47,8 @@ class SitlProcess:
             Path(self.log_path).parent.mkdir(parents=True, exist_ok=True)
         self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      text=True, env=env, preexec_fn=die_with_parent)
-        threading.Thread(target=self._pump, daemon=True).start()
+        self._pump_thread = threading.Thread(target=self._pump, daemon=True)
+        self._pump_thread.start()
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             try:
@@ -77,14 +79,18 @@ class SitlProcess:
 
     def stop(self, timeout: float = 5.0) -> int | None:
         """Stop the SITL (SIGTERM, then SIGKILL after `timeout` s); return its exit code."""
-        if self.proc is None or self.proc.poll() is not None:
-            return None if self.proc is None else self.proc.returncode
-        self.proc.terminate()
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.wait()
+        if self.proc is None:
+            return None
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if self._pump_thread is not None:  # its last lines reach the log before this process may exit
+            self._pump_thread.join(timeout)
+        return self.proc.returncode
 
     def __enter__(self) -> SitlProcess:
         return self.start()

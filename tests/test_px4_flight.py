@@ -90,7 +90,12 @@ def test_px4_killed_mid_flight_stops_everything_with_a_clear_message(px4_flight)
     assert gcs.arm() == mav.MAV_RESULT_ACCEPTED  # just after the first test's landing
     assert gcs.takeoff() == mav.MAV_RESULT_ACCEPTED
     gcs.run_until(lambda g: g.position[2] < -1.0, sim_s=20.0)
+    # A SITL too slow to see the link drop before the launcher reacts (as on a loaded machine) must still
+    # log it: hold the SITL still while PX4 dies, past several of the launcher's polls.
+    os.kill(run.sitl_pid, signal.SIGSTOP)
     os.kill(run.px4_pid, signal.SIGKILL)
+    time.sleep(1.0)
+    os.kill(run.sitl_pid, signal.SIGCONT)
     code = run.proc.wait(60.0)
     run.wait_for("PX4 and the SITL stopped", 5.0)
     assert code == 1

@@ -86,6 +86,22 @@ def test_sitl_child_dies_when_its_parent_is_killed_with_sigkill(tmp_path):
         parent.wait()
 
 
+def test_sitl_child_last_lines_reach_its_log_when_its_parent_exits_after_stop(tmp_path):
+    """The SITL's output went to its log through a daemon thread that a parent exiting right after stop()
+    cut off: the log could lack the SITL's last lines."""
+    script = textwrap.dedent("""
+        import sys
+        from quadsr.sitl_process import SitlProcess
+        sitl = SitlProcess(["--sensors", "ideal"], log_path=sys.argv[1]).start()
+        sys.exit(sitl.stop())
+    """)
+    log = tmp_path / "sitl.log"
+    done = subprocess.run([sys.executable, "-c", script, str(log)], cwd=REPO, timeout=60)
+    assert done.returncode == 0
+    lines = log.read_text().splitlines()
+    assert lines and lines[-1].endswith("(exit)"), lines[-3:]
+
+
 def test_fly_writes_steps_and_metrics_on_sigterm_as_on_sigint(start_sitl, tmp_path):
     """Issue 16 item 6: `quadsr fly` on SIGTERM exited 143 without steps.csv or the metrics."""
     sitl = start_sitl("--no-gcs", "--sensors", "ideal", "--lockstep-timeout", "20")
