@@ -223,6 +223,7 @@ def identify(
     below: dict[str, float] = {}
     not_excited: dict[str, dict[str, Any]] = {}
     evidence: dict[str, str] = {}  # per target: what the pick scored candidates on
+    engine_stats: dict[str, dict[str, Any]] = {}  # per target: the engine's own account of its search
     warnings: list[str] = roles.notes()  # where the held-out blocks went when a flight's tail is steady
     engine_notes: list[str] = []
     total_start = time.perf_counter()
@@ -327,6 +328,8 @@ def identify(
         timings = {k: round(v, 3) for k, v in getattr(eng, "timings", {}).items()}
         timings["total"] = round(elapsed, 3)
         out["timings"] = timings
+        if getattr(eng, "stats", None):  # what the engine did and why (e.g. discovery's hub_law: "none: ...")
+            out["stats"] = dict(eng.stats)
         if getattr(eng, "gate_r2", None) is not None:
             out["gate"] = float(eng.gate_r2)
         if body_frame:  # the terms as functions of the 16 variables; the library's candidates are in the
@@ -382,7 +385,7 @@ def identify(
         warnings += [f"note: {n}" for n in new_notes] + out["lines"]
         for key, per_target in (("evidence", evidence), ("not_excited", not_excited),
                                 ("timings", wall), ("gate", gates), ("identifiability", identifiability),
-                                ("model", targets_done), ("below", below)):
+                                ("model", targets_done), ("below", below), ("stats", engine_stats)):
             if key in out:
                 per_target[name] = out[key]
     body = None
@@ -438,6 +441,8 @@ def identify(
     }
     if gates:
         engine_info["sparse_pick_r2"] = gates
+    if engine_stats:
+        engine_info["stats"] = engine_stats
     if not_excited:
         engine_info["flags"] = [v["flag"] for v in not_excited.values()]
     if weak is not None:

@@ -87,7 +87,7 @@ def test_validation_metrics_come_only_from_rows_used_neither_to_fit_nor_to_pick(
     assert again.engine["rows"]["validate"] == val["rows"]
 
 
-def test_the_same_seed_gives_the_same_model_with_genetic_programming():
+def test_the_same_seed_gives_the_same_model_with_genetic_programming(tmp_path):
     xi, u = random_states(1200, seed=8)
     y = true_model("fang-chen-buaa").accelerations(xi, u)
     y[:, 3] += 20.0 * np.sin(xi[:, 6]) * np.cos(xi[:, 6])  # not in the grown features either
@@ -104,6 +104,10 @@ def test_the_same_seed_gives_the_same_model_with_genetic_programming():
     assert [p.expression for p in fronts[0]] == [p.expression for p in fronts[1]]
     assert str(models[0].targets["dwx"].expression) == str(models[1].targets["dwx"].expression)
     assert models[0].engine["budget_generations_per_target"] == 6
+    # the engine's account of its search is in the file, per target, as the run left it
+    stats = load_model(save_model(models[0], tmp_path / "m.yaml")).engine["stats"]["dwx"]
+    assert stats == models[1].engine["stats"]["dwx"]
+    assert stats["features"] > 0 and stats["rounds"] >= 1 and 1 <= stats["operon_generations"] <= 6, stats
 
 
 def _confounded_flight(n: int, seed: int, tied: bool) -> Dataset:
