@@ -286,7 +286,8 @@ class DiscoveryEngine:
                     # the series' rounds had ended where the law was due: they end as with no law
                     key = "hub_law" if series is None else "hub_law_refit"
                     self.stats[key] = ("none: no finite fit with every hub above "
-                                       f"{s.hub_law_min_height:g} of the CG's height at every row")
+                                       f"{s.hub_law_min_height:g} of the CG's height at every row and "
+                                       "nearer the CG than the flight's median height")
                     break
                 # the series' state, to return to when the law's rounds end no better (hub_law_evidence)
                 before = (best, len(candidates), space, columns, F, Z, pool)

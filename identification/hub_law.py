@@ -29,7 +29,8 @@ No hub may come nearer the ground than a quarter of the CG's height at any row (
 the engine's `hub_law_min_height`): there 1/H_i^k is a spike at the flight's lowest rows that fits the
 target's errors, not a ground effect. On realistic-sensor flights the fit went there (hubs 0.5-0.9 m from the
 CG at 0.0-0.03 of its height) and crawled to its evaluation budget along that edge; a stage now stops at the
-first iterate that gets there and the fit gives no law.
+first iterate that gets there and the fit gives no law. So does an offset at the box bound (the flight's
+median height, MAX_OFFSET_FRACTION): a hub that far from the CG cannot be told from the height itself.
 
 A rotor's thrust is not u_i^2 alone: it grows with the hub's in-plane airspeed (translational lift), and the
 ground multiplies all of it. With `airspeed` the law holds that part as well,
@@ -137,6 +138,19 @@ def hubs_reach_ground(inputs: np.ndarray, offsets: np.ndarray,
     return not bool(np.all(H > fraction * inputs[:, [0]]))
 
 
+# a law whose hub offset reaches this fraction of the box bound (the flight's median height, per component)
+# is no law either: the box is there because a hub farther from the CG than the vehicle flies high cannot be
+# told from the height itself, so a fit pressing on it fits something else (realistic closed-loop flights:
+# the in-plane stage ended with arms at the bound, 0.81 m, and the next stages crawled to their budgets; the
+# true hubs sit at a fifth of it on the bench's truth flights)
+MAX_OFFSET_FRACTION = 0.98
+
+
+def offsets_at_bound(offsets: np.ndarray, bound: float, fraction: float = MAX_OFFSET_FRACTION) -> bool:
+    """Whether some component of the hub offsets (m, FRD) reaches `fraction` of the box bound (m)."""
+    return bool(np.max(np.abs(np.asarray(offsets, float)), initial=0.0) >= fraction * bound)
+
+
 # blocks kept per rotor, least recently used dropped first: a jacobian by differences needs a rotor's block
 # at the point and one step at a time (a block of 15,000 point rows and 4 powers is 0.5 MB)
 KEPT_BLOCKS = 8
@@ -217,9 +231,9 @@ def fit_hub_law(
     start: the offsets (4, 3) m to start from, all twelve fitted (None: every hub at the CG, the in-plane
     arms fitted first, then all twelve: module docstring); airspeed: the hubs' in-plane airspeed
     terms too; arm: one law shared by the rotors, each rotor's share its arm for "force" (1), "roll" (-r_iy)
-    or "pitch" (r_ix) (None: a law per rotor). None when no finite fit, or when a stage ends with a hub
-    nearer the ground than min_height of the CG's height at some row (hubs_reach_ground): the later stages
-    are not run."""
+    or "pitch" (r_ix) (None: a law per rotor). None when no finite fit, or when a stage reaches a hub
+    nearer the ground than min_height of the CG's height at some row (hubs_reach_ground) or an offset at the
+    box bound (offsets_at_bound): the stage stops there and the later stages are not run."""
     inputs = np.asarray(inputs, float)
     y = np.asarray(y, float)
     Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
@@ -271,17 +285,22 @@ def fit_hub_law(
         start = np.asarray(free.offsets)
     x0 = np.zeros(12) if start is None else np.clip(np.ravel(start), -0.99 * bound, 0.99 * bound)
 
+    def no_law(r: np.ndarray) -> bool:
+        """Whether offsets r (m) are no law's: a hub near the ground, or an offset at the box bound."""
+        return hubs_reach_ground(inputs, r, min_height) or offsets_at_bound(r, bound)
+
     def descend(offsets: Callable[[np.ndarray], np.ndarray], p0: np.ndarray) -> np.ndarray:
         """The parameters p (of the offsets(p), m) least_squares reaches from p0 within the budget, or the
-        first iterate whose hubs reach the ground (the stage ends there: its law is no law)."""
+        first iterate whose hubs reach the ground or the box bound (the stage ends there: its law is no
+        law)."""
 
-        def stop_at_ground(p: np.ndarray) -> None:
-            if hubs_reach_ground(inputs, offsets(p), min_height):
+        def stop_at_edge(p: np.ndarray) -> None:
+            if no_law(offsets(p)):
                 raise StopIteration  # least_squares returns this iterate
 
         return least_squares(lambda p: solve(offsets(p))[0] / scale, p0, bounds=(-bound, bound),
                              x_scale=0.1 * bound, diff_step=1e-4, max_nfev=max_evaluations,
-                             callback=stop_at_ground).x
+                             callback=stop_at_edge).x
 
     if max_evaluations > 0 and start is None:
         # the in-plane arms first, the heights held at the CG's, then all twelve (module docstring: from
@@ -294,13 +313,13 @@ def fit_hub_law(
             return r
 
         x0[planar] = descend(in_plane, x0[planar])
-        if hubs_reach_ground(inputs, x0, min_height):
+        if no_law(x0):
             return None
     if max_evaluations > 0:
         x = descend(lambda r: r, x0)
     else:  # the offsets as given: only the coefficients fitted
         x = x0
-    if hubs_reach_ground(inputs, x, min_height):
+    if no_law(x):
         return None
     # the airspeed terms at the offsets the rotor speeds place: near r = 0 the four hubs' airspeeds are one
     # column, and a fit of the offsets through them would differentiate a rank-deficient projection

@@ -35,6 +35,7 @@ from identification.hub_law import (
     hub_columns,
     hub_heights,
     hubs_reach_ground,
+    offsets_at_bound,
 )
 from identification.pareto import attach_holdout, select
 from identification.true_model import random_states, true_body_expressions
@@ -201,6 +202,24 @@ def test_the_law_is_kept_only_on_evidence_against_the_series():
                                                                  (Xh, yh))
     attach_holdout(off, Xh, yh, "absolute")
     assert str(select(off, SelectionSettings(), float(np.std(yh))).expression) == str(best.expression)
+
+
+def test_a_flight_lower_than_its_hubs_are_far_apart_gives_no_law():
+    # The offsets are boxed by the flight's median height: farther out, a hub cannot be told from the height
+    # itself. Hubs at 0.09 m (this vehicle's arms) on a flight at 0.05-0.12 m (median 0.085 m) press on the
+    # box: no law, not the box's corner. The same law on a flight at 0.2-1.0 m: the hubs.
+    truth, far = _law("fz")
+    laws = []
+    for heights in ((0.05, 0.12), (0.2, 1.0)):
+        X = _rows(2000, 3, tilt=0.1, heights=heights)
+        rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+        laws.append(fit_hub_law(primitive_matrix(X, HUB_PRIMITIVES), body_values(truth, X), rest, 3))
+    low, high = laws
+    assert low is None
+    assert high is not None
+    np.testing.assert_allclose(np.asarray(high.offsets)[:, :2], np.asarray(GROUND_VEHICLE.rotor_arms)[:, :2],
+                               atol=1e-2)
+    assert offsets_at_bound([[0.0, 0.5, 0.0]], 0.5) and not offsets_at_bound([[0.0, 0.45, -0.2]], 0.5)
 
 
 def test_where_the_law_would_take_the_hubs_to_the_ground_the_rounds_end_as_with_no_law():
