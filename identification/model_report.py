@@ -3,7 +3,8 @@
 report.md: the data (flights, rows, what the segmentation kept), per target the validation metrics, the
 equation in the display normal form grouped by physical meaning (identification.equation_form, DIGITS
 significant digits), the plausibility checks (identification.plausibility) and the flags (low R^2 on the
-validation rows; the engine's own notes and flags where the model file has them). fit.png: per target,
+validation rows; the engine's own notes and flags where the model file has them) and the engine's account of
+its search (rounds, the ground-effect law at the rotor hubs and the hubs it found). fit.png: per target,
 measured and predicted over time on the validation rows, and the residual (measured - predicted) below.
 """
 
@@ -43,6 +44,27 @@ def model_flags(model: Any, validation: Dataset) -> list[str]:
         for item in engine.get(key, []) or []:
             flags.append(str(item))
     return flags
+
+
+def search_lines(engine: dict[str, Any]) -> list[str]:
+    """Markdown lines of the engine's per-target account of its search (model file `engine.stats`): rounds,
+    pool, and the ground-effect law at the rotor hubs (kept or why not, the hubs it found in m FRD)."""
+    lines = []
+    for target, stats in (engine.get("stats") or {}).items():
+        if not isinstance(stats, dict):
+            continue
+        parts = [f"{stats[k]} {label}" for k, label in (("rounds", "rounds"), ("pool", "features pooled"))
+                 if k in stats]
+        for key, label in (("hub_law", "hub law"), ("hub_law_refit", "hub law refit")):
+            if key in stats:
+                parts.append(f"{label}: {stats[key]}")
+        hubs = stats.get("hub_offsets_m")
+        if hubs:
+            points = ", ".join("(" + ", ".join(f"{float(v):.3f}" for v in r) + ")" for r in hubs)
+            parts.append(f"hubs at {points} m FRD from the CG (rotors 1-4)")
+        if parts:
+            lines.append(f"- {target}: " + "; ".join(parts))
+    return lines
 
 
 def _figure(model: Any, validation: Dataset, path: Path) -> Path:
@@ -127,6 +149,9 @@ def write_model_report(
     flags = model_flags(model, validation)
     lines += ["## Plausibility", "", *(f"- {c.line()}" for c in checks), ""]
     lines += ["## Flags", ""] + ([f"- {f}" for f in flags] or ["- none"]) + [""]
+    search = search_lines(getattr(getattr(model, "model_", None), "engine", {}) or {})
+    if search:
+        lines += ["## How the engine searched", "", *search, ""]
     lines += ["## Fit on the validation rows", "", f"![measured and model, residuals]({png.name})", ""]
     md = out / "report.md"
     md.write_text("\n".join(lines), encoding="utf-8")

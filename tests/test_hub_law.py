@@ -37,6 +37,7 @@ from identification.hub_law import (
     hubs_reach_ground,
     offsets_at_bound,
 )
+from identification.model_report import search_lines
 from identification.pareto import attach_holdout, select
 from identification.true_model import random_states, true_body_expressions
 
@@ -172,6 +173,12 @@ def test_a_targets_law_does_not_depend_on_the_targets_fitted_before_it():
 
     alone, stats = fit("dwx")
     assert stats["hub_law"] == "kept", stats
+    # the model report says so, with the hubs found (m FRD), from the stats as the model file holds them
+    line, = search_lines({"stats": {"dwx": stats}})
+    first = stats["hub_offsets_m"][0]
+    np.testing.assert_allclose(first[:2], np.asarray(GROUND_VEHICLE.rotor_arms)[0, :2], atol=1e-2)
+    assert line.startswith("- dwx: ") and "hub law: kept" in line, line
+    assert "hubs at (" + ", ".join(f"{v:.3f}" for v in first) + "), " in line and "m FRD from the CG" in line
     _, fz_stats = fit("fz")
     assert fz_stats["hub_law"] == "kept", fz_stats  # a law another target could have started from
     assert fit("dwx")[0] == alone
