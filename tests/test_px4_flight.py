@@ -43,9 +43,19 @@ def px4_flight(tmp_path_factory):
         run.stop()
 
 
+def _tails(work, lines: int = 25) -> str:
+    """The last lines of PX4's and the SITL's logs: what a failed assert shows beside its values."""
+    out = []
+    for name in ("px4.log", "sitl.log"):
+        path = work / name
+        text = path.read_text(errors="replace").splitlines()[-lines:] if path.exists() else ["(missing)"]
+        out.append(f"--- {name} (last {lines} lines)\n" + "\n".join(text))
+    return "\n".join(out)
+
+
 def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
     run, gcs, work, ready_wall = px4_flight
-    assert ready_wall < 60.0
+    assert ready_wall < 60.0, f"PX4 ready for takeoff after {ready_wall:.1f} s wall\n{_tails(work)}"
     assert "autopilot connected" in (work / "sitl.log").read_text()
     assert "SYS_AUTOSTART=10099" in (work / "px4.log").read_text()  # the matched airframe
     gcs.run_until(lambda g: g.position is not None, sim_s=5.0)
@@ -62,10 +72,11 @@ def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
         msg = gcs.recv(1.0)
         if msg is not None and msg.get_type() == "LOCAL_POSITION_NED":
             estimate.append(gcs.position)
-    assert len(estimate) > 100  # 50 Hz for 10 s
+    assert len(estimate) > 100, f"{len(estimate)} position estimates in 10 s simulated (50 Hz expected)\n" \
+        + _tails(work)
     worst = max(math.dist(p, (x0, y0, z0 - HOVER_ALT)) for p in estimate)
     assert worst < HOVER_HELD, f"hover strayed {worst:.3f} m from ({x0:.2f}, {y0:.2f}, {z0 - HOVER_ALT:.2f})"
-    assert gcs.armed
+    assert gcs.armed, f"disarmed while hovering\n{_tails(work)}"
     assert gcs.command(mav.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, math.nan, math.nan, math.nan) == \
         mav.MAV_RESULT_ACCEPTED
     gcs.run_until(lambda g: g.landed_state == mav.MAV_LANDED_STATE_ON_GROUND and not g.armed, sim_s=30.0)
@@ -74,10 +85,11 @@ def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
     truth = [(m.time_boot_ms, (m.x, m.y, m.z)) for _, m in read_tlog(work / "truth.tlog")
              if m.get_type() == "LOCAL_POSITION_NED"]
     window = [p for t, p in truth if end - 10000 <= t <= end]
-    assert len(window) > 2000  # 250 Hz
+    assert len(window) > 2000, f"{len(window)} truth rows in 10 s simulated (250 Hz expected)\n{_tails(work)}"
     gx, gy, gz = truth[0][1]
-    assert max(math.dist(p, (gx, gy, gz - HOVER_ALT)) for p in window) < HOVER_HELD
-    assert truth[-1][1][2] > -0.02
+    worst = max(math.dist(p, (gx, gy, gz - HOVER_ALT)) for p in window)
+    assert worst < HOVER_HELD, f"the truth strayed {worst:.3f} m from the hover point\n{_tails(work)}"
+    assert truth[-1][1][2] > -0.02, f"last truth height {-truth[-1][1][2]:.3f} m: not landed\n{_tails(work)}"
     # PX4 saw working sensors (none failed as stuck: sitl.sensors' never_repeat) and a live ground station
     said = (work / "px4.log").read_text()
     assert "STALE" not in said and "switch from" not in said, said
