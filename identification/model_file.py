@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import datetime as _dt
+import functools
 import hashlib
 import math
 import os
@@ -169,6 +170,7 @@ def check_expression(expr: sympy.Expr) -> None:
         raise ExpressionError(f"unknown names {bad} (allowed: {', '.join(VARIABLE_NAMES)})")
 
 
+@functools.lru_cache(maxsize=8192)  # the pick sizes thousands of moves over one pool of terms
 def complexity(expr: sympy.Expr) -> int:
     """The size of an expression: the number of nodes in its sympy tree, an integer power counted as one
     unary operator (its exponent is no node of its own) and an absolute value as two, as a square root

@@ -26,11 +26,14 @@ def replacements(
     exclude: Sequence[int],
     weights: np.ndarray | None = None,
     nearest: int = 40,
+    correlations: dict[int, np.ndarray] | None = None,
 ) -> list[int]:
     """Column indices of F (N,M) that fit y (N,) better than a term of the model in its place (module
     docstring). terms: the model's columns of F (its constant implied); exclude: columns not to propose (the
     pool); Z: F standardised (identification.discovery._standardized, NaN where unusable); weights (N,): row
-    weights of the sums of squares; nearest: how many of the features most correlated with a term are tried.
+    weights of the sums of squares; nearest: how many of the features most correlated with a term are tried;
+    correlations: a term's |correlation| with every column of Z, kept by the caller for as long as Z is the
+    same (the rounds' picks share most terms, and each is a pass over all of Z).
     """
     terms = [int(j) for j in terms]
     if not terms:
@@ -45,8 +48,13 @@ def replacements(
         zj = Z[:, j]
         if not np.all(np.isfinite(zj)):
             continue
-        with np.errstate(all="ignore"):
-            corr = np.abs(np.nan_to_num(Z.T @ zj, nan=0.0)) / len(zj)
+        corr = None if correlations is None else correlations.get(j)
+        if corr is None:
+            with np.errstate(all="ignore"):
+                corr = np.abs(np.nan_to_num(Z.T @ zj, nan=0.0)) / len(zj)
+            if correlations is not None:
+                correlations[j] = corr
+        corr = corr.copy()
         corr[blocked] = -1.0
         near = [int(k) for k in np.argsort(-corr, kind="stable")[:nearest] if corr[k] > 0.0]
         if not near:
