@@ -53,6 +53,7 @@ class LeastSquaresProblem:
         self._r_u, self._z_u = self._reduce(scaled * sw[:, None], y * sw)
         self._y2 = float((y * sw) @ (y * sw))
         self._y_c2 = float((((y - self.y_mean) * sw) ** 2).sum())
+        self._solved: dict[tuple, np.ndarray] = {}  # solve()'s answers by active set
         consts = np.flatnonzero(self.is_const & self.usable)
         self.const_col = int(consts[0]) if consts.size == 1 else None
         if self.const_col is not None:
@@ -68,6 +69,14 @@ class LeastSquaresProblem:
 
     def solve(self, active: np.ndarray) -> np.ndarray:
         """Least-squares coefficients (original units) on the active columns; zeros elsewhere."""
+        # kept: every threshold of the sweep starts from the same full set, and the sets it and the paths
+        # reach are solved again when they become candidates
+        key = (active.dtype.str, active.shape, active.tobytes())
+        if key not in self._solved:
+            self._solved[key] = self._solve(active)
+        return self._solved[key].copy()
+
+    def _solve(self, active: np.ndarray) -> np.ndarray:
         coef = np.zeros(self.theta.shape[1])
         idx = np.flatnonzero(active)
         if idx.size == 0:

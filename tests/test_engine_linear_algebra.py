@@ -4,7 +4,8 @@
   when it raises the rank of the pool (the constant and the columns accepted before it), in order, up to
   the limit;
 - the backward path keeps its triangular factor up to date by Givens rotations: the same active sets as
-  recomputing the removal costs from a fresh QR at every step.
+  recomputing the removal costs from a fresh QR at every step;
+- a problem's solves are kept by active set: the same coefficients, to the bit, as a fresh solve.
 """
 
 from __future__ import annotations
@@ -71,3 +72,20 @@ def test_the_updated_backward_path_equals_the_path_of_fresh_factorizations():
     assert [list(np.flatnonzero(a)) for a in path] == [list(i) for i in fresh]
     # the true four terms are the path's four-term set
     assert set(np.flatnonzero(path[-4])) == {1, 3, 12, 20}
+
+
+def test_a_kept_solve_is_the_fresh_solve_and_a_caller_cannot_change_it():
+    rng = np.random.default_rng(4)
+    n = 1500
+    base = rng.standard_normal((n, 6))
+    theta = np.column_stack([np.ones(n), base, base[:, :3] ** 2])
+    y = theta[:, [0, 2, 7]] @ np.array([0.3, 1.5, -0.7]) + 1e-3 * rng.standard_normal(n)
+    masks = [np.ones(10, bool), np.isin(np.arange(10), [0, 2, 7]), np.isin(np.arange(10), [2, 7])]
+    kept = LeastSquaresProblem(theta, y)
+    for active in masks:
+        first = kept.solve(active)
+        first[:] = 99.0  # a caller's edit of its answer
+        again = kept.solve(active)
+        fresh = LeastSquaresProblem(theta, y).solve(active)  # a new problem: nothing kept yet
+        assert np.array_equal(again, fresh)
+    assert np.allclose(kept.solve(masks[1])[[0, 2, 7]], [0.3, 1.5, -0.7], atol=1e-3)
