@@ -713,6 +713,12 @@ def main() -> int:
     args = ap.parse_args()
     args.validation_flight = not args.own_validation_block
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
+    for e in engines:  # before any flight is flown
+        if e == "discovery-weak":
+            raise SystemExit("discovery-weak is not an engine of --engines: on realistic-sensor cases "
+                             "`discovery` gives both rows, discovery (point targets) and discovery-weak")
+        if e not in ENGINES:
+            raise SystemExit(f"unknown engine {e!r} (known: {', '.join(ENGINES)})")
     names = None if args.cases is None else [c.strip() for c in args.cases.split(",")]
     unknown = [n for n in names or [] if n not in {c.name for c in CASES}]
     if unknown:

@@ -4,6 +4,11 @@ reproduces validation rows; the settings written above the table state the libra
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from bench_module import bench_module
@@ -79,3 +84,19 @@ def test_the_validation_flight_option_gives_the_whole_training_flight_to_fit_and
     assert rows_given["validate"] == len(val)
     assert rows_given["fit"] + rows_given["pick"] > rows_blocks["fit"] + rows_blocks["pick"] + 250
     assert rows_blocks["validate"] < len(train) // 4
+
+
+@pytest.mark.parametrize("engine, says", [
+    ("discovery-weak", "`discovery` gives both rows"),
+    ("pysr", "unknown engine 'pysr' (known: discovery, sparse"),
+])
+def test_an_engine_the_bench_does_not_run_is_refused_before_any_flight(tmp_path, engine, says):
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "out"
+    run = subprocess.run([sys.executable, str(root / "bench" / "discovery.py"), "--engines", engine,
+                          "--out", str(out), "--cases", "sitl paper flights"], capture_output=True, text=True,
+                         timeout=120, cwd=root, env={**os.environ, "PYTHONPATH": str(root)})
+    assert run.returncode == 1
+    assert says in run.stderr
+    assert "Traceback" not in run.stderr
+    assert not any(out.glob("*.tlog"))  # nothing flown
