@@ -361,6 +361,15 @@ def ols_three_terms(train: Dataset) -> Model:
     return Model(exprs)
 
 
+def check_engine(engine: str) -> None:
+    """SystemExit saying what to use instead when this bench does not run `engine`."""
+    if engine == "discovery-weak":
+        raise SystemExit("discovery-weak is not an engine of --engines: on realistic-sensor cases "
+                         "`discovery` gives both rows, discovery (point targets) and discovery-weak")
+    if engine not in ENGINES:
+        raise SystemExit(f"unknown engine {engine!r} (known: {', '.join(ENGINES)})")
+
+
 def fit(engine: str, train: Dataset, seed: int, gravity: float, budget: int,
         operon_generations: int, settings: EngineSettings | None = None,
         validate: Dataset | None = None, pick_blocks: int = 1, jobs: int = 1) -> Model:
@@ -380,8 +389,7 @@ def fit(engine: str, train: Dataset, seed: int, gravity: float, budget: int,
     if engine in ("discovery", "sparse"):
         return identify(train, engine=engine, budget=budget, seed=seed, progress=False, gravity=gravity,
                         settings=settings, validate=validate, pick_blocks=pick_blocks, jobs=jobs)
-    if engine not in BASELINES:
-        raise SystemExit(f"unknown engine {engine!r} (known: {', '.join(ENGINES)})")
+    check_engine(engine)
     with single_threaded_blas():
         if engine == "operon":
             return identify(train, engine=engine, budget=operon_generations, seed=seed, progress=False,
@@ -714,11 +722,7 @@ def main() -> int:
     args.validation_flight = not args.own_validation_block
     engines = [e.strip() for e in args.engines.split(",") if e.strip()]
     for e in engines:  # before any flight is flown
-        if e == "discovery-weak":
-            raise SystemExit("discovery-weak is not an engine of --engines: on realistic-sensor cases "
-                             "`discovery` gives both rows, discovery (point targets) and discovery-weak")
-        if e not in ENGINES:
-            raise SystemExit(f"unknown engine {e!r} (known: {', '.join(ENGINES)})")
+        check_engine(e)
     names = None if args.cases is None else [c.strip() for c in args.cases.split(",")]
     unknown = [n for n in names or [] if n not in {c.name for c in CASES}]
     if unknown:

@@ -270,7 +270,7 @@ class DiscoveryEngine:
         off = np.zeros(len(space), bool)  # features out of the screening (the height series once a law is in)
         heights = space.height_features()  # what the forward path from the pick never adds
         zf: tuple | None = None  # (Z, its NaN-free copy, column sums of squares, usable columns)
-        zc: tuple | None = None  # (Z, {term: its |correlation| with Z's columns}), for the replacements
+        correlations: dict[int, np.ndarray] = {}  # per term, |correlation| with Z's columns (replacements)
         # a hub law is fitted where the rounds would stop (the pick as complete as the series lets it be), at
         # most hub_law_fits times; each law round is followed by rounds that screen its residual
         laws, fit_law = 0, False
@@ -305,6 +305,7 @@ class DiscoveryEngine:
             if zf is None or zf[0] is not Z:  # Z's NaN-free copy and column sums, once per space
                 zf = (Z, np.nan_to_num(Z, nan=0.0))
                 zf += (np.sum(zf[1] * zf[1], axis=0), np.all(np.isfinite(Z[:1]), axis=0))
+                correlations = {}
             scores = _projected_scores(Z, residual if weights is None else weights * residual, model_cols,
                                        prepared=zf[1:])
             scores[off] = -np.inf
@@ -337,10 +338,8 @@ class DiscoveryEngine:
             residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
             if loss == "absolute":  # the few rows with large target errors do not choose the terms
                 weights = huber_weights(residual)
-            if zc is None or zc[0] is not Z:
-                zc = (Z, {})
             swaps = replacements(F, Z, y, [int(i) for i in self._features.get(id(best), [])], pool, weights,
-                                 correlations=zc[1])
+                                 correlations=correlations)
             swaps = [i for i in swaps if not off[i]]
             if progress:
                 progress(0.7 * (rnd + 1) / max(s.rounds, 1),
