@@ -287,9 +287,10 @@ def term_identification(
 ) -> tuple[float, float]:
     """(the smallest t ratio |c_j| / se_j, the largest VIF) over a linear model's non-constant terms.
 
-    columns (N,k): the model's term columns (a constant column is fitted but not measured), y (N,): the
-    target; c the least-squares coefficients, se_j = s sqrt(VIF_j) / (sqrt(N_eff) std_j) the least-squares
-    standard error (s the residual's RMS). Rows of a flight are not independent: the residual of one sample
+    columns (N,k): the model's term columns (a constant column is fitted but not measured; without one, the
+    terms are measured beside a constant offset: term_t_ratios), y (N,): the target; c the least-squares
+    coefficients, se_j = s sqrt(VIF_j) / (sqrt(N_eff) std_j) the least-squares standard error (s the
+    residual's RMS). Rows of a flight are not independent: the residual of one sample
     is close to the next one's, so N_eff = N (1 - rho) / (1 + rho), rho the residual's lag-1
     autocorrelation (an AR(1) residual's effective sample size), not N. A term whose coefficient cannot be
     told from zero given its collinearity with the others and what the model leaves unexplained has a small
@@ -318,7 +319,8 @@ def term_identification(
 
 
 def term_t_ratios(
-    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None, noise: Whitener | None = None
+    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None, noise: Whitener | None = None,
+    offset: bool = True,
 ) -> tuple[np.ndarray | None, np.ndarray]:
     """(t ratio |c_j| / se_j, VIF_j) of each column (k,) of the least-squares fit of y (N,) on columns (N,k),
     with the effective sample size of term_identification (max_lag: weak-form rows, effective_rows);
@@ -326,7 +328,13 @@ def term_t_ratios(
     fitted but gets NaN for both; t is inf for every column of an exact fit with a nonzero coefficient, 0
     where a coefficient is 0. With noise (the whitener of exactly these N weak rows, every row finite):
     se_j from the fit's weights on the rows' stated noise, its scale the whitened residual's variance
-    (weak_noise.estimate_covariance; the least-squares fit's sandwich under that noise)."""
+    (weak_noise.estimate_covariance; the least-squares fit's sandwich under that noise).
+    offset: the columns are measured beside a constant offset, fitted with them when none of them is
+    constant: a term this flight cannot tell from an offset is not identified by it, whether or not its
+    model has one. A sensor's bias or any unmodelled trim is such an offset: on fast paper flights
+    (|v_b|^2 = 341 +- 73 m^2/s^2) -4.5e-5 (ub^2 + vb^2 + wb^2) held the accelerometer's -0.015 m/s^2 bias,
+    a t of thousands without a constant and about 4 beside one. The standard errors of term_identification
+    (centred VIF and spread) are those of a fit with an offset already."""
     a = np.asarray(columns, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
@@ -335,6 +343,10 @@ def term_t_ratios(
         return None, np.array([np.inf])
     std = a.std(axis=0)
     measured = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    if offset and measured.all() and len(y) > a.shape[1] + 1:
+        whole = noise if ok.all() else None  # the whitener holds exactly the rows it was given
+        t, vif = term_t_ratios(np.hstack([np.ones((len(y), 1)), a]), y, max_lag, whole, offset=False)
+        return (None, vif) if t is None else (t[1:], vif[1:])
     full_t, full_vif = np.full(a.shape[1], np.nan), np.full(a.shape[1], np.nan)
     if not measured.any():
         return full_t, full_vif

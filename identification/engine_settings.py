@@ -210,8 +210,9 @@ class SelectionSettings:
 
     rel_tol: float = 0.02
     abs_tol: float = 1e-6  # of the held-out target's spread: rounding level (identification.pareto)
-    # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t) is not
-    # identified by the flight, and not picked while an identified one exists (pareto.select)
+    # a candidate with a term whose t ratio is below min_t on the fit rows (collinearity.weakest_t; measured
+    # beside a constant offset when the candidate has none) is not identified by the flight, and not picked
+    # while an identified one exists (pareto.select)
     min_t: float = 5.0
     # on weak rows whose log states its targets' noise (Dataset.target_noise: our .tlog's step rows), those
     # t ratios use each term's standard error under that noise (collinearity.term_t_ratios), not the

@@ -10,6 +10,7 @@ from identification.candidate import Candidate
 from identification.collinearity import term_identification, term_t_ratios, weakest_t
 from identification.engine_settings import SelectionSettings
 from identification.pareto import select
+from identification.weak_noise import Whitener
 
 
 def _rows(seed: int, n: int = 4000) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -99,6 +100,32 @@ def test_term_t_ratios_name_the_term_below_the_noise():
     assert t[1] > 100 and t[2] > 100 and t[3] < 5
     assert np.allclose(vif[1:], 1.0, atol=0.01)
     assert term_identification(cols, y)[0] == pytest.approx(t[3])
+
+
+def test_a_term_that_stands_for_an_offset_is_not_identified():
+    """A model without a constant: a nearly constant term (|v_b|^2 on a fast flight, 21 % about its mean)
+    that holds a sensor's bias fits with a huge t on its own, but is measured beside an offset, where its t
+    is that of its variation; the same term with a real effect of that variation stays identified."""
+    rng = np.random.default_rng(5)
+    n = 4000
+    t_s = np.arange(n) / 250.0
+    speed2 = 341.0 * (1.0 + 0.21 * np.sin(2 * np.pi * t_s / 7.0))  # m^2/s^2
+    drag = rng.standard_normal(n)
+    noise = 0.02 * rng.standard_normal(n)
+    cols = np.column_stack([speed2, drag])
+    stated = Whitener(np.full((1, n), 0.02), 0)  # the rows' stated noise: white, 0.02 m/s^2
+    bias = -0.015 + 2.0 * drag + noise  # an offset and the drag, nothing of speed2
+    t_offset, _ = term_t_ratios(cols, bias, noise=stated)
+    t_alone, _ = term_t_ratios(cols, bias, noise=stated, offset=False)
+    assert t_alone[0] > 20 and t_offset[0] < 5  # without the offset it carries the bias
+    assert t_offset[1] > 1000
+    assert term_identification(cols, bias, noise=stated)[0] == pytest.approx(t_offset[0])
+    assert term_t_ratios(cols, bias)[0][0] < 5  # the AR(1) standard errors: an offset's already
+    real = 2e-4 * speed2 + 2.0 * drag + noise  # varies by 0.014 m/s^2 with speed2: seen beside an offset
+    assert term_t_ratios(cols, real, noise=stated)[0][0] > 20
+    with_constant = np.column_stack([np.ones(n), cols])  # a constant among the columns: measured as given
+    as_given = term_t_ratios(with_constant, bias, offset=False)[0]
+    assert np.array_equal(term_t_ratios(with_constant, bias)[0], as_given, equal_nan=True)
 
 
 def test_the_pick_measures_only_the_candidates_its_answer_depends_on():
