@@ -13,9 +13,8 @@ Before that, candidates the flight does not identify are set aside: those with a
 the fit rows (coefficient over its standard error, inflated by the term's VIF; beside a constant offset
 when the candidate has no constant: a term the flight cannot tell from a sensor's bias is not identified)
 is below `min_t` (identification.collinearity.term_identification; measured by the engines that can, else
-None), or a
-term whose VIF there is above `max_vif` (the flight barely separates it from the others), as long as one
-candidate that passes exists. On closed-loop data the regressors are collinear and a model of tied
+None), or a term whose VIF there is above `max_vif` (the flight barely separates it from the others), as
+long as one candidate that passes exists. On closed-loop data the regressors are collinear and a model of tied
 terms with cancelling coefficients can have the lowest pick loss by fitting the targets' errors; it is not
 a model of the vehicle, and a controller derived from it can crash. Likewise a candidate whose
 self-feedback is positive beyond `max_self_feedback_t` standard errors (identification.self_feedback:

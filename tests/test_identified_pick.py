@@ -104,7 +104,7 @@ def test_term_t_ratios_name_the_term_below_the_noise():
 
 def test_a_term_that_stands_for_an_offset_is_not_identified():
     """A model without a constant: a nearly constant term (|v_b|^2 on a fast flight, 21 % about its mean)
-    that holds a sensor's bias fits with a huge t on its own, but is measured beside an offset, where its t
+    that holds a sensor's bias fits with a large t on its own, but is measured beside an offset, where its t
     is that of its variation; the same term with a real effect of that variation stays identified."""
     rng = np.random.default_rng(5)
     n = 4000
