@@ -38,6 +38,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 import sympy
 
 from bridge.errors import UserError
@@ -1247,26 +1248,47 @@ def _swap_in_combinations(
     n = F.shape[0]
     cols = F[:, pool]
     A = np.hstack([np.full((n, 1), 1.0 / np.sqrt(n)), cols / np.linalg.norm(cols, axis=0)])
+    pending: list[tuple[int, np.ndarray]] = []
     for f in features:
-        v = F[:, f]
-        size = float(np.linalg.norm(v))
-        if f in pool or not (np.isfinite(size) and size > 0.0):
-            continue
-        v = v / size
-        coef = np.linalg.lstsq(A, v, rcond=None)[0]
-        if not np.linalg.norm(v - A @ coef) <= tol:
-            continue
-        members = [pool[j] for j in np.flatnonzero(np.abs(coef[1:]) > member_tol)]
-        free = [i for i in members if i not in fixed]
-        if len(members) < 2 or not free:
-            continue
-        out = min(free, key=lambda i: (1, model_t[i]) if i in model_t else
-                  (0, scores[i] if np.isfinite(scores[i]) else -np.inf))
-        k = pool.index(out)
-        pool[k] = f
-        A[:, k + 1] = v
-        swapped.append(f)
+        size = float(np.linalg.norm(F[:, f]))
+        if f not in pool and np.isfinite(size) and size > 0.0:
+            pending.append((f, F[:, f] / size))
+    while pending:
+        # one factorisation for every pending feature; after a swap the pool changed, so the rest again
+        coefs, rests = _combinations(A, np.column_stack([v for _, v in pending]))
+        for j, (f, v) in enumerate(pending):
+            if f in pool or not rests[j] <= tol:
+                continue
+            members = [pool[i] for i in np.flatnonzero(np.abs(coefs[1:, j]) > member_tol)]
+            free = [i for i in members if i not in fixed]
+            if len(members) < 2 or not free:
+                continue
+            out = min(free, key=lambda i: (1, model_t[i]) if i in model_t else
+                      (0, scores[i] if np.isfinite(scores[i]) else -np.inf))
+            k = pool.index(out)
+            pool[k] = f
+            A[:, k + 1] = v
+            swapped.append(f)
+            pending = pending[j + 1:]
+            break
+        else:
+            pending = []
     return swapped
+
+
+def _combinations(A: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares coefficients (q, m) of each column of V (N, m) over A's columns (N, q), and the norms
+    (m,) of what is left: by the triangular factor of [A | V] when A's columns are independent, else SVD."""
+    n, q = A.shape
+    m = V.shape[1]
+    if n > q + m:
+        r = np.linalg.qr(np.hstack([A, V]), mode="r")
+        d = np.abs(np.diag(r[:q, :q]))
+        if d.size and d.min() > 1e-10 * d.max():
+            coefs = scipy.linalg.solve_triangular(r[:q, :q], r[:q, q:])
+            return coefs, np.linalg.norm(r[q:, q:], axis=0)
+    coefs = np.linalg.lstsq(A, V, rcond=None)[0]
+    return coefs, np.linalg.norm(V - A @ coefs, axis=0)
 
 
 def term_substitutions(

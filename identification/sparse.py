@@ -28,8 +28,9 @@ from identification.model_file import complexity
 class LeastSquaresProblem:
     """The scaled least-squares problem of one target, reduced once by QR.
 
-    With S = QR (N x p), min ||S_A x - y|| over a column subset A equals min ||R_A x - Q^T y||: every subset
-    solve afterwards is a p x |A| problem, independent of the number of samples.
+    With [S | y] = QR (N x (p+1)), min ||S_A x - y|| over a column subset A equals min ||R_A x - z|| for z
+    R's last column: every subset solve afterwards is a (p+1) x |A| problem, independent of the number of
+    samples.
     """
 
     def __init__(self, theta: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None):
@@ -50,22 +51,31 @@ class LeastSquaresProblem:
         scaled = theta / self.size
         self.scaled = scaled
         sw = np.ones(len(y)) if w is None else np.sqrt(w)
-        self._r_u, self._z_u = self._reduce(scaled * sw[:, None], y * sw)
+        consts = np.flatnonzero(self.is_const & self.usable)
+        self.const_col = int(consts[0]) if consts.size == 1 else None
+        p = theta.shape[1]
+        c0 = self.const_col
+        # one R-only factorisation of [S | y] with the constant column first: the rows after the first are
+        # the factor of the weighted-centred problem (the first reflection removes the weighted mean), far
+        # better conditioned when features have large means (f1 ~ 1e6)
+        order = np.arange(p) if c0 is None else np.r_[c0, np.delete(np.arange(p), c0)]
+        r = self._reduce(np.column_stack([scaled[:, order] * sw[:, None], y * sw]))
+        m = min(r.shape[0], p + 1)
+        self._r_u = np.zeros((m, p))
+        self._r_u[:, order] = r[:m, :p]
+        self._z_u = r[:m, p].copy()
         self._y2 = float((y * sw) @ (y * sw))
         self._y_c2 = float((((y - self.y_mean) * sw) ** 2).sum())
         self._solved: dict[tuple, np.ndarray] = {}  # solve()'s answers by active set
-        consts = np.flatnonzero(self.is_const & self.usable)
-        self.const_col = int(consts[0]) if consts.size == 1 else None
-        if self.const_col is not None:
-            # centred columns: far better conditioned when features have large means (f1 ~ 1e6)
-            centred = (scaled - self.mean / self.size) * sw[:, None]
-            centred[:, self.const_col] = 0.0
-            self._r_c, self._z_c = self._reduce(centred, (y - self.y_mean) * sw)
+        if c0 is not None:
+            self._r_c = np.zeros((max(m - 1, 0), p))
+            self._r_c[:, order[1:]] = r[1:m, 1:p]
+            self._z_c = r[1:m, p].copy()
 
     @staticmethod
-    def _reduce(a: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        q, r = np.linalg.qr(a, mode="reduced")
-        return r, q.T @ y
+    def _reduce(a: np.ndarray) -> np.ndarray:
+        """The upper-triangular factor R of a = QR (Q not formed)."""
+        return np.linalg.qr(np.asfortranarray(a), mode="r")
 
     def solve(self, active: np.ndarray) -> np.ndarray:
         """Least-squares coefficients (original units) on the active columns; zeros elsewhere."""
@@ -85,11 +95,11 @@ class LeastSquaresProblem:
         if c0 is not None and active[c0]:
             others = idx[idx != c0]
             if others.size:
-                sol = np.linalg.lstsq(self._r_c[:, others], self._z_c, rcond=None)[0]
+                sol = lstsq_by_qr(self._r_c[:, others], self._z_c)
                 coef[others] = sol / self.size[others]
             coef[c0] = (self.y_mean - float(self.mean[others] @ coef[others])) / self.mean[c0]
             return coef
-        sol = np.linalg.lstsq(self._r_u[:, idx], self._z_u, rcond=None)[0]
+        sol = lstsq_by_qr(self._r_u[:, idx], self._z_u)
         coef[idx] = sol / self.size[idx]
         return coef
 
@@ -109,7 +119,7 @@ class LeastSquaresProblem:
             offset = float(self._y2 - z @ z)
         if r.shape[1] == 0:
             return float(z @ z) + offset
-        x = np.linalg.lstsq(r, z, rcond=None)[0]
+        x = lstsq_by_qr(r, z)
         d = z - r @ x
         return float(d @ d) + offset
 
@@ -134,8 +144,11 @@ class LeastSquaresProblem:
         if diag.size == 0 or diag.min() <= 1e-10 * diag.max():  # dependent columns: the slow, exact way
             base = self.rss(idx)
             return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
-        x = scipy.linalg.solve_triangular(r, t[:k, k])
-        rinv = scipy.linalg.solve_triangular(r, np.eye(k))
+        rinv, info = scipy.linalg.lapack.dtrtri(r, lower=0)
+        if info != 0:
+            base = self.rss(idx)
+            return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
+        x = rinv @ t[:k, k]
         return x * x / np.sum(rinv * rinv, axis=1)
 
     def subset_factor(self, idx: np.ndarray) -> np.ndarray:
@@ -189,6 +202,18 @@ class LeastSquaresProblem:
         out = np.zeros_like(coef)
         out[idx] = best_x / self.size[idx]
         return out
+
+
+def lstsq_by_qr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Least-squares x of a x = b (a (n, k), b (n,)): by the triangular factor of [a | b] when a's columns
+    are independent (several times faster than SVD), by SVD (np.linalg.lstsq) otherwise."""
+    n, k = a.shape
+    if 0 < k <= n:
+        r = np.linalg.qr(np.column_stack([a, b]), mode="r")
+        d = np.abs(np.diag(r[:k, :k]))
+        if d.min() > 1e-10 * d.max():
+            return scipy.linalg.solve_triangular(r[:k, :k], r[:k, k])
+    return np.linalg.lstsq(a, b, rcond=None)[0]
 
 
 def _weighted_solve(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -5,15 +5,21 @@
   the limit;
 - the backward path keeps its triangular factor up to date by Givens rotations: the same active sets as
   recomputing the removal costs from a fresh QR at every step;
-- a problem's solves are kept by active set: the same coefficients, to the bit, as a fresh solve.
+- a problem's solves are kept by active set: the same coefficients, to the bit, as a fresh solve;
+- a problem is reduced by one factorisation of [S | y] with the constant first, the centred problem read off
+  its rows: subset solves and residuals equal plain least squares on the raw rows, with and without the
+  constant, with row weights and with features of large mean;
+- lstsq_by_qr equals SVD least squares, also on dependent columns;
+- the pool's combination test factorises once for every pending feature: the coefficients and the rests of
+  one least-squares solve per feature.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from identification.discovery import _Basis
-from identification.sparse import LeastSquaresProblem, backward_path
+from identification.discovery import _Basis, _combinations
+from identification.sparse import LeastSquaresProblem, backward_path, lstsq_by_qr
 
 
 def _columns(seed: int, n: int = 600) -> np.ndarray:
@@ -89,3 +95,78 @@ def test_a_kept_solve_is_the_fresh_solve_and_a_caller_cannot_change_it():
         fresh = LeastSquaresProblem(theta, y).solve(active)  # a new problem: nothing kept yet
         assert np.array_equal(again, fresh)
     assert np.allclose(kept.solve(masks[1])[[0, 2, 7]], [0.3, 1.5, -0.7], atol=1e-3)
+
+
+def _raw_fit(theta: np.ndarray, y: np.ndarray, w: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted least squares on the raw rows: coefficients and the residual sum of squares."""
+    sw = np.sqrt(w)
+    coef = np.linalg.lstsq(theta[:, cols] * sw[:, None], y * sw, rcond=None)[0]
+    d = (y - theta[:, cols] @ coef) * sw
+    return coef, float(d @ d)
+
+
+def test_one_factorisation_gives_the_raw_least_squares_with_and_without_the_constant():
+    rng = np.random.default_rng(7)
+    n = 2500
+    base = rng.standard_normal((n, 5))
+    big = 1e6 + 2e3 * base[:, 0]  # a rotor-speed-squared-like column: large mean, small spread
+    theta = np.column_stack([base[:, 1], np.ones(n), big, base[:, 2] * base[:, 3], base[:, 4] ** 2, base[:, 1]
+                             * big])
+    y = theta @ np.array([0.5, 2.0, 3e-6, -1.2, 0.0, 1e-6]) + 1e-3 * rng.standard_normal(n)
+    for w in (np.ones(n), rng.uniform(0.0, 2.0, n)):
+        problem = LeastSquaresProblem(theta, y, weights=w)
+        assert problem.const_col == 1
+        subsets = [[1, 2, 3], [0, 1, 2, 3, 5], [0, 2, 3], [2, 4], [0, 1, 2, 3, 4, 5]]
+        rss = {}
+        for cols in subsets:
+            active = np.isin(np.arange(6), cols)
+            expected, rss[tuple(cols)] = _raw_fit(theta, y, w, np.asarray(cols))
+            got = problem.solve(active)[cols]
+            assert np.allclose(got, expected, rtol=1e-7, atol=1e-12 * np.abs(expected).max())
+        # residuals up to a constant per kind (with / without the constant column): differences are exact
+        with_c = [c for c in subsets if 1 in c]
+        for a, b in zip(with_c, with_c[1:], strict=False):
+            mask_a, mask_b = np.isin(np.arange(6), a), np.isin(np.arange(6), b)
+            got = problem.rss_reduced(mask_a) - problem.rss_reduced(mask_b)
+            assert np.isclose(got, rss[tuple(a)] - rss[tuple(b)], rtol=1e-6, atol=1e-9)
+        no_c = [c for c in subsets if 1 not in c]
+        got = problem.rss_reduced(np.isin(np.arange(6), no_c[0])) - problem.rss_reduced(
+            np.isin(np.arange(6), no_c[1]))
+        assert np.isclose(got, rss[tuple(no_c[0])] - rss[tuple(no_c[1])], rtol=1e-6)
+        # removal costs: the rise of the residual without each column
+        idx = np.array([0, 2, 3, 5])
+        costs = problem.removal_costs(idx)
+        full = _raw_fit(theta, y, w, idx)[1]
+        plain = [_raw_fit(theta, y, w, np.delete(idx, j))[1] - full for j in range(idx.size)]
+        assert np.allclose(costs, plain, rtol=1e-6)
+
+
+def test_lstsq_by_qr_is_svd_least_squares_also_on_dependent_columns():
+    rng = np.random.default_rng(8)
+    a = rng.standard_normal((300, 6))
+    b = rng.standard_normal(300)
+    assert np.allclose(lstsq_by_qr(a, b), np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-10, atol=1e-12)
+    dependent = np.column_stack([a, a[:, 2]])  # a repeated column: the minimum-norm answer, as numpy's
+    assert np.allclose(lstsq_by_qr(dependent, b), np.linalg.lstsq(dependent, b, rcond=None)[0], atol=1e-10)
+    wide = a[:4]  # more columns than rows
+    assert np.allclose(lstsq_by_qr(wide, b[:4]), np.linalg.lstsq(wide, b[:4], rcond=None)[0], atol=1e-10)
+
+
+def test_the_batched_combination_test_equals_one_solve_per_feature():
+    rng = np.random.default_rng(9)
+    n = 800
+    A = rng.standard_normal((n, 7))
+    A /= np.linalg.norm(A, axis=0)
+    V = np.column_stack([A[:, [1, 4]] @ [2.0, -1.0], rng.standard_normal(n), A[:, 0] + 1e-3 * A[:, 6],
+                         A @ rng.standard_normal(7) + 1e-5 * rng.standard_normal(n)])
+    coefs, rests = _combinations(A, V)
+    for j in range(V.shape[1]):
+        c = np.linalg.lstsq(A, V[:, j], rcond=None)[0]
+        assert np.allclose(coefs[:, j], c, rtol=1e-9, atol=1e-11)
+        assert np.isclose(rests[j], np.linalg.norm(V[:, j] - A @ c), rtol=1e-8, atol=1e-13)
+    assert rests[0] < 1e-12 and rests[1] > 0.5  # an exact combination and an independent feature
+    # dependent columns in A (a repeat): the SVD path, the same rests
+    Ad = np.column_stack([A, A[:, 3]])
+    coefs_d, rests_d = _combinations(Ad, V)
+    assert np.allclose(rests_d, rests, atol=1e-10)
+    assert np.allclose(Ad @ coefs_d, A @ coefs, atol=1e-9)
