@@ -12,7 +12,10 @@ the pick stays (at most `rounds` times). The moves are fitted on the fit rows, a
 Beside every candidate's terms the moves may use `extra` terms: identify passes the engine's shape twins of
 the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins). On realistic-sensor
 fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has the lower cross-validated
-loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in.
+loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in. One more move
+changes the rotor speeds' family in all terms at once (rotor_power_twins): on realistic-sensor
+fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two terms, where the
+SITL's rotor drag is linear in the speeds; no one-term move leaves that family.
 """
 
 from __future__ import annotations
@@ -78,7 +81,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     scale = folded.scale
     for _ in range(rounds):
         current = term_shapes(chosen.expression)
-        moves = _moves(current, list(pool.values()))
+        moves = _moves(current, list(pool.values())) + rotor_power_twins(current)
         scored = []
         for shapes in moves:
             key = _key(shapes)
@@ -127,6 +130,31 @@ def _moves(current: list[sympy.Expr], pool: list[sympy.Expr]) -> list[list[sympy
     out = [current[:i] + current[i + 1:] for i in range(len(current))]
     out += [current[:i] + [p] + current[i + 1:] for i in range(len(current)) for p in others]
     out += [[*current, p] for p in others]
+    return out
+
+
+ROTOR_SPEEDS = ("u1", "u2", "u3", "u4")
+
+
+def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
+    """The model with every rotor speed's square lowered to the speed, and with every speed raised to its
+    square, in all terms at once (each when it changes the model). Rotor speeds vary a few per cent about
+    hover, so u_i and u_i^2 are near twins in every product (u^2 = ubar^2 + 2 ubar d + d^2), and a model
+    written in one family is only reached from the other by moving several terms together."""
+    out = []
+    for lower in (True, False):
+        terms = []
+        for t in current:
+            family = {x for x in t.free_symbols if isinstance(x, sympy.Symbol) and x.name in ROTOR_SPEEDS}
+            powers = [a for a in sympy.preorder_traversal(t) if isinstance(a, sympy.Pow) and a.base in family]
+            if lower:
+                terms.append(t.xreplace({sympy.Pow(x, 2): x for x in family}))
+            elif family and not powers:
+                terms.append(t.xreplace({x: x**2 for x in family}))
+            else:
+                terms.append(t)
+        if _key(terms) != _key(current) and len(set(terms)) == len(terms):
+            out.append(terms)
     return out
 
 
