@@ -12,10 +12,10 @@ the pick stays (at most `rounds` times). The moves are fitted on the fit rows, a
 Beside every candidate's terms the moves may use `extra` terms: identify passes the engine's shape twins of
 the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins). On realistic-sensor
 fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has the lower cross-validated
-loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in. One more move
-changes the rotor speeds' family in all terms at once (rotor_power_twins): on realistic-sensor
-fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two terms, where the
-SITL's rotor drag is linear in the speeds; no one-term move leaves that family.
+loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in. More moves
+change the rotor speeds' family, in all terms at once and in each cofactor's terms (rotor_power_twins): on
+realistic-sensor fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two
+terms, where the SITL's rotor drag is linear in the speeds; no one-term move leaves that family.
 """
 
 from __future__ import annotations
@@ -138,24 +138,45 @@ ROTOR_SPEEDS = ("u1", "u2", "u3", "u4")
 
 def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
     """The model with every rotor speed's square lowered to the speed, and with every speed raised to its
-    square, in all terms at once (each when it changes the model). Rotor speeds vary a few per cent about
-    hover, so u_i and u_i^2 are near twins in every product (u^2 = ubar^2 + 2 ubar d + d^2), and a model
-    written in one family is only reached from the other by moving several terms together."""
-    out = []
-    for lower in (True, False):
-        terms = []
-        for t in current:
-            family = {x for x in t.free_symbols if isinstance(x, sympy.Symbol) and x.name in ROTOR_SPEEDS}
-            powers = [a for a in sympy.preorder_traversal(t) if isinstance(a, sympy.Pow) and a.base in family]
-            if lower:
-                terms.append(t.xreplace({sympy.Pow(x, 2): x for x in family}))
-            elif family and not powers:
-                terms.append(t.xreplace({x: x**2 for x in family}))
-            else:
-                terms.append(t)
-        if _key(terms) != _key(current) and len(set(terms)) == len(terms):
-            out.append(terms)
+    square, in all its terms at once and in the terms of each cofactor apart (each move when it changes the
+    model). Rotor speeds vary a few per cent about hover, so u_i and u_i^2 are near twins in every product
+    (u^2 = ubar^2 + 2 ubar d + d^2), and a model written in one family is only reached from the other by
+    moving several terms together; the cofactor (a term's factors without a rotor speed: wz for
+    wz (u1^2 - u2^2), 1 for u1^2) keeps a moment's thrust terms apart from its rotor drag."""
+    groups: dict[sympy.Expr, list[int]] = {}
+    for i, t in enumerate(current):
+        if _rotors(t):
+            groups.setdefault(_cofactor(t), []).append(i)
+    selections = [list(range(len(current)))] + (list(groups.values()) if len(groups) > 1 else [])
+    out: list[list[sympy.Expr]] = []
+    for chosen in selections:
+        for lower in (True, False):
+            terms = list(current)
+            for i in chosen:
+                terms[i] = _power_twin(current[i], lower)
+            if _key(terms) != _key(current) and len(set(terms)) == len(terms) and terms not in out:
+                out.append(terms)
     return out
+
+
+def _rotors(term: sympy.Expr) -> set[sympy.Symbol]:
+    return {x for x in term.free_symbols if isinstance(x, sympy.Symbol) and x.name in ROTOR_SPEEDS}
+
+
+def _cofactor(term: sympy.Expr) -> sympy.Expr:
+    """The term's factors that hold no rotor speed (1 when none)."""
+    factors = term.args if isinstance(term, sympy.Mul) else (term,)
+    return sympy.Mul(*[f for f in factors if not _rotors(f)]).as_coeff_Mul()[1]
+
+
+def _power_twin(term: sympy.Expr, lower: bool) -> sympy.Expr:
+    """The term with its rotor speeds' squares lowered, or its (first-power) speeds raised to squares."""
+    family = _rotors(term)
+    if lower:
+        return term.xreplace({sympy.Pow(x, 2): x for x in family})
+    if any(isinstance(a, sympy.Pow) and a.base in family for a in sympy.preorder_traversal(term)):
+        return term  # a term with a power of a speed is not raised
+    return term.xreplace({x: x**2 for x in family})
 
 
 def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows, kind: str,

@@ -4,7 +4,8 @@ Rotor speeds vary a few per cent about hover in flight, so u_i and u_i^2 are nea
 a model written in one family is reached from the other only by moving several terms together: on
 realistic-sensor fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two
 terms, where the SITL's rotor drag is linear in the rotor speeds. The polish now scores the pick with every
-square of a rotor speed lowered, and with every speed raised, in all terms at once. Seeded, small synthetic
+square of a rotor speed lowered, and with every speed raised, in all terms at once and in the terms of each
+cofactor apart (a roll moment's thrust terms u_i^2 beside its rotor drag wz u_i). Seeded, small synthetic
 data with the rotor speeds spread over 0..1000 rad/s (the families far apart)."""
 
 from __future__ import annotations
@@ -35,6 +36,11 @@ def test_the_twins_lower_and_raise_every_rotor_speed_at_once():
     # a twin that would write two terms alike is no move (the model would lose a term, not change family)
     assert rotor_power_twins([U1**2, U1]) == []
     assert rotor_power_twins([ONE, VB]) == []  # no rotor speed: no twin
+    # a moment's thrust terms (cofactor 1) apart from its rotor drag (cofactor wz)
+    moment = [U1**2 - U2**2 - U3**2 + U4**2, WZ * U1**2, WZ * (U1**2 + U2**2 - U3**2 + U4**2)]
+    twins = rotor_power_twins(moment)
+    assert [moment[0], WZ * U1, WZ * (U1 + U2 - U3 + U4)] in twins
+    assert [U1 - U2 - U3 + U4, *moment[1:]] in twins
 
 
 def _rows(truth: list[sympy.Expr], coef: list[float], seed: int) -> FoldedRows:
@@ -62,3 +68,10 @@ def test_a_pick_in_squares_stays_when_the_physics_is_quadratic():
     rows = _rows([ONE, VB, WZ * (U1**2 - U2**2 + U3**2 - U4**2)], [0.1, -0.4, 2e-7], 4)
     assert _polish(rows, SQUARED) == {str(s) for s in SQUARED}
     assert _polish(rows, LINEAR) == {str(s) for s in SQUARED}  # and a linear pick is raised
+
+
+def test_a_moments_rotor_drag_is_lowered_beside_its_squared_thrust():
+    thrust = U1**2 - U2**2 - U3**2 + U4**2
+    rows = _rows([thrust, WZ * (U1 - U2 + U3 - U4)], [1e-5, 2e-4], 5)
+    start = [thrust, WZ * U1**2, WZ * (U1**2 + U2**2 - U3**2 + U4**2)]
+    assert _polish(rows, start) == {str(s) for s in [thrust, WZ * U1, WZ * (U1 + U2 - U3 + U4)]}
