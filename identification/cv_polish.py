@@ -160,6 +160,7 @@ def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
 
 
 def _rotors(term: sympy.Expr) -> set[sympy.Symbol]:
+    """The rotor speeds (rad/s) the term holds."""
     return {x for x in term.free_symbols if isinstance(x, sympy.Symbol) and x.name in ROTOR_SPEEDS}
 
 

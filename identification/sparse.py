@@ -135,25 +135,23 @@ class LeastSquaresProblem:
     def removal_costs(self, idx: np.ndarray, factor: np.ndarray | None = None) -> np.ndarray:
         """For each column of idx, how much the RSS rises without it: x_j^2 / [(M^T M)^-1]_jj, vectorised.
 
-        factor: the triangular factor of [M | Q^T y] for M = the reduced columns idx (subset_factor), when
+        factor: the triangular factor of [M | z] for M = the reduced columns idx (subset_factor), when
         the caller keeps it up to date (backward_path); computed here otherwise."""
         k = idx.size
         t = self.subset_factor(idx) if factor is None else factor
         r = t[:k, :k]
         diag = np.abs(np.diag(r))
-        if diag.size == 0 or diag.min() <= 1e-10 * diag.max():  # dependent columns: the slow, exact way
-            base = self.rss(idx)
-            return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
-        rinv, info = scipy.linalg.lapack.dtrtri(r, lower=0)
-        if info != 0:
-            base = self.rss(idx)
-            return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
-        x = rinv @ t[:k, k]
-        return x * x / np.sum(rinv * rinv, axis=1)
+        if not (diag.size == 0 or diag.min() <= 1e-10 * diag.max()):  # else dependent columns
+            rinv, info = scipy.linalg.lapack.dtrtri(r, lower=0)
+            if info == 0:
+                x = rinv @ t[:k, k]
+                return x * x / np.sum(rinv * rinv, axis=1)
+        base = self.rss(idx)  # the slow, exact way
+        return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
 
     def subset_factor(self, idx: np.ndarray) -> np.ndarray:
         """The triangular factor (at most k+1 rows) of [M | z] for M the reduced columns idx (k of them) and
-        z = Q^T y: its first k columns are M's R, its last column's first k entries R's Q^T z."""
+        z the reduced target: its first k columns are M's R, its last column's first k entries R's Q^T z."""
         t = np.linalg.qr(np.asfortranarray(np.column_stack([self._r_u[:, idx], self._z_u])), mode="r")
         return t[: idx.size + 1]
 
@@ -206,7 +204,7 @@ class LeastSquaresProblem:
 
 def lstsq_by_qr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Least-squares x of a x = b (a (n, k), b (n,)): by the triangular factor of [a | b] when a's columns
-    are independent (several times faster than SVD), by SVD (np.linalg.lstsq) otherwise."""
+    are independent, by SVD (np.linalg.lstsq) otherwise (near-dependent columns: its minimum-norm answer)."""
     n, k = a.shape
     if 0 < k <= n:
         r = np.linalg.qr(np.column_stack([a, b]), mode="r")
