@@ -30,7 +30,7 @@ from identification.collinearity import term_identification, term_shapes
 from identification.cross_validation import FoldedRows
 from identification.engine_settings import SelectionSettings
 from identification.metrics import loss as loss_fn
-from identification.model_file import complexity
+from identification.model_file import INPUT_NAMES, complexity
 from identification.paired_loss import paired_loss_t
 from identification.pareto import select, within_tolerance
 from identification.refit import terms_candidate
@@ -133,9 +133,6 @@ def _moves(current: list[sympy.Expr], pool: list[sympy.Expr]) -> list[list[sympy
     return out
 
 
-ROTOR_SPEEDS = ("u1", "u2", "u3", "u4")
-
-
 def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
     """The model with every rotor speed's square lowered to the speed, and with every speed raised to its
     square, in all its terms at once and in the terms of each cofactor apart (each move when it changes the
@@ -161,13 +158,12 @@ def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
 
 def _rotors(term: sympy.Expr) -> set[sympy.Symbol]:
     """The rotor speeds (rad/s) the term holds."""
-    return {x for x in term.free_symbols if isinstance(x, sympy.Symbol) and x.name in ROTOR_SPEEDS}
+    return {x for x in term.free_symbols if isinstance(x, sympy.Symbol) and x.name in INPUT_NAMES}
 
 
 def _cofactor(term: sympy.Expr) -> sympy.Expr:
     """The term's factors that hold no rotor speed (1 when none)."""
-    factors = term.args if isinstance(term, sympy.Mul) else (term,)
-    return sympy.Mul(*[f for f in factors if not _rotors(f)]).as_coeff_Mul()[1]
+    return sympy.Mul(*[f for f in sympy.Mul.make_args(term) if not _rotors(f)]).as_coeff_Mul()[1]
 
 
 def _power_twin(term: sympy.Expr, lower: bool) -> sympy.Expr:

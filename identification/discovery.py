@@ -38,7 +38,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 import sympy
 
 from bridge.errors import UserError
@@ -64,6 +63,7 @@ from identification.replacement import replacements
 from identification.robust_weights import huber_weights
 from identification.sparse import (
     LeastSquaresProblem,
+    lstsq_by_qr,
     single_threaded_blas,
     sparse_active_sets,
     sparse_expression,
@@ -1255,7 +1255,7 @@ def _swap_in_combinations(
             pending.append((f, F[:, f] / size))
     while pending:
         # one factorisation for every pending feature; after a swap the pool changed, so the rest again
-        coefs, rests = _combinations(A, np.column_stack([v for _, v in pending]))
+        coefs, rests = lstsq_by_qr(A, np.column_stack([v for _, v in pending]))
         for j, (f, v) in enumerate(pending):
             if f in pool or not rests[j] <= tol:
                 continue
@@ -1274,21 +1274,6 @@ def _swap_in_combinations(
         else:
             pending = []
     return swapped
-
-
-def _combinations(A: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares coefficients (q, m) of each column of V (N, m) over A's columns (N, q), and the norms
-    (m,) of what is left: by the triangular factor of [A | V] when A's columns are independent, else SVD."""
-    n, q = A.shape
-    m = V.shape[1]
-    if n > q + m:
-        r = np.linalg.qr(np.hstack([A, V]), mode="r")
-        d = np.abs(np.diag(r[:q, :q]))
-        if d.size and d.min() > 1e-10 * d.max():
-            coefs = scipy.linalg.solve_triangular(r[:q, :q], r[:q, q:])
-            return coefs, np.linalg.norm(r[q:, q:], axis=0)
-    coefs = np.linalg.lstsq(A, V, rcond=None)[0]
-    return coefs, np.linalg.norm(V - A @ coefs, axis=0)
 
 
 def term_substitutions(

@@ -95,11 +95,11 @@ class LeastSquaresProblem:
         if c0 is not None and active[c0]:
             others = idx[idx != c0]
             if others.size:
-                sol = lstsq_by_qr(self._r_c[:, others], self._z_c)
+                sol = lstsq_by_qr(self._r_c[:, others], self._z_c)[0]
                 coef[others] = sol / self.size[others]
             coef[c0] = (self.y_mean - float(self.mean[others] @ coef[others])) / self.mean[c0]
             return coef
-        sol = lstsq_by_qr(self._r_u[:, idx], self._z_u)
+        sol = lstsq_by_qr(self._r_u[:, idx], self._z_u)[0]
         coef[idx] = sol / self.size[idx]
         return coef
 
@@ -119,7 +119,7 @@ class LeastSquaresProblem:
             offset = float(self._y2 - z @ z)
         if r.shape[1] == 0:
             return float(z @ z) + offset
-        x = lstsq_by_qr(r, z)
+        x = lstsq_by_qr(r, z)[0]
         d = z - r @ x
         return float(d @ d) + offset
 
@@ -202,16 +202,20 @@ class LeastSquaresProblem:
         return out
 
 
-def lstsq_by_qr(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Least-squares x of a x = b (a (n, k), b (n,)): by the triangular factor of [a | b] when a's columns
-    are independent, by SVD (np.linalg.lstsq) otherwise (near-dependent columns: its minimum-norm answer)."""
+def lstsq_by_qr(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares x of a x = b (a (n, k); b (n,) or (n, m)) and the norm of what is left (per column of
+    b): by the triangular factor of [a | b] when a's columns are independent, by SVD (np.linalg.lstsq)
+    otherwise (near-dependent columns: its minimum-norm answer)."""
     n, k = a.shape
     if 0 < k <= n:
         r = np.linalg.qr(np.column_stack([a, b]), mode="r")
         d = np.abs(np.diag(r[:k, :k]))
         if d.min() > 1e-10 * d.max():
-            return scipy.linalg.solve_triangular(r[:k, :k], r[:k, k])
-    return np.linalg.lstsq(a, b, rcond=None)[0]
+            rhs = r[:k, k] if b.ndim == 1 else r[:k, k:]
+            rest = r[k:, k] if b.ndim == 1 else r[k:, k:]
+            return scipy.linalg.solve_triangular(r[:k, :k], rhs), np.linalg.norm(rest, axis=0)
+    x = np.linalg.lstsq(a, b, rcond=None)[0]
+    return x, np.linalg.norm(b - a @ x, axis=0)
 
 
 def _weighted_solve(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:

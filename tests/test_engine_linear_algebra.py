@@ -10,15 +10,15 @@
   its rows: subset solves and residuals equal plain least squares on the raw rows, with and without the
   constant, with row weights and with features of large mean;
 - lstsq_by_qr equals SVD least squares, also on dependent columns;
-- the pool's combination test factorises once for every pending feature: the coefficients and the rests of
-  one least-squares solve per feature.
+- the pool's combination test factorises once for every pending feature (lstsq_by_qr with a matrix of
+  right-hand sides): the coefficients and the rests of one least-squares solve per feature.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from identification.discovery import _Basis, _combinations
+from identification.discovery import _Basis
 from identification.sparse import LeastSquaresProblem, backward_path, lstsq_by_qr
 
 
@@ -145,11 +145,11 @@ def test_lstsq_by_qr_is_svd_least_squares_also_on_dependent_columns():
     rng = np.random.default_rng(8)
     a = rng.standard_normal((300, 6))
     b = rng.standard_normal(300)
-    assert np.allclose(lstsq_by_qr(a, b), np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-10, atol=1e-12)
+    assert np.allclose(lstsq_by_qr(a, b)[0], np.linalg.lstsq(a, b, rcond=None)[0], rtol=1e-10, atol=1e-12)
     dependent = np.column_stack([a, a[:, 2]])  # a repeated column: the minimum-norm answer, as numpy's
-    assert np.allclose(lstsq_by_qr(dependent, b), np.linalg.lstsq(dependent, b, rcond=None)[0], atol=1e-10)
+    assert np.allclose(lstsq_by_qr(dependent, b)[0], np.linalg.lstsq(dependent, b, rcond=None)[0], atol=1e-10)
     wide = a[:4]  # more columns than rows
-    assert np.allclose(lstsq_by_qr(wide, b[:4]), np.linalg.lstsq(wide, b[:4], rcond=None)[0], atol=1e-10)
+    assert np.allclose(lstsq_by_qr(wide, b[:4])[0], np.linalg.lstsq(wide, b[:4], rcond=None)[0], atol=1e-10)
 
 
 def test_the_batched_combination_test_equals_one_solve_per_feature():
@@ -159,7 +159,7 @@ def test_the_batched_combination_test_equals_one_solve_per_feature():
     A /= np.linalg.norm(A, axis=0)
     V = np.column_stack([A[:, [1, 4]] @ [2.0, -1.0], rng.standard_normal(n), A[:, 0] + 1e-3 * A[:, 6],
                          A @ rng.standard_normal(7) + 1e-5 * rng.standard_normal(n)])
-    coefs, rests = _combinations(A, V)
+    coefs, rests = lstsq_by_qr(A, V)
     for j in range(V.shape[1]):
         c = np.linalg.lstsq(A, V[:, j], rcond=None)[0]
         assert np.allclose(coefs[:, j], c, rtol=1e-9, atol=1e-11)
@@ -167,6 +167,6 @@ def test_the_batched_combination_test_equals_one_solve_per_feature():
     assert rests[0] < 1e-12 and rests[1] > 0.5  # an exact combination and an independent feature
     # dependent columns in A (a repeat): the SVD path, the same rests
     Ad = np.column_stack([A, A[:, 3]])
-    coefs_d, rests_d = _combinations(Ad, V)
+    coefs_d, rests_d = lstsq_by_qr(Ad, V)
     assert np.allclose(rests_d, rests, atol=1e-10)
     assert np.allclose(Ad @ coefs_d, A @ coefs, atol=1e-9)
