@@ -15,11 +15,16 @@ fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has t
 loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in. More moves
 change the rotor speeds' family, in all terms at once and in each cofactor's terms (rotor_power_twins): on
 realistic-sensor fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two
-terms, where the SITL's rotor drag is linear in the speeds; no one-term move leaves that family.
+terms, where the SITL's rotor drag is linear in the speeds; no one-term move leaves that family. And each
+cofactor's rotor terms may be merged into the mixer's sign pattern nearest their coefficients, alone or
+beside the rotors' sum (rotor_patterns): on closed-loop realistic-sensor fang-chen-aero (seed 5) dwx held
+wz u2^2 and wz (u1^2 + u2^2 + u3^2 - u4^2) (VIF 77), where the SITL has wz (u1 - u2 + u3 - u4) and a small
+common part; the merged pair has the lower cross-validated loss and a VIF of 2.
 """
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -81,7 +86,8 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     scale = folded.scale
     for _ in range(rounds):
         current = term_shapes(chosen.expression)
-        moves = _moves(current, list(pool.values())) + rotor_power_twins(current)
+        moves = (_moves(current, list(pool.values())) + rotor_power_twins(current)
+                 + rotor_patterns(chosen.expression, current))
         scored = []
         for shapes in moves:
             key = _key(shapes)
@@ -154,6 +160,57 @@ def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
             if _key(terms) != _key(current) and len(set(terms)) == len(terms) and terms not in out:
                 out.append(terms)
     return out
+
+
+def rotor_patterns(expression: sympy.Expr, current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
+    """The model with each cofactor's rotor terms (two or more rotors' speeds at one power, read from the
+    fitted `expression` of the terms `current`) replaced by the mixer's sign pattern nearest their per-rotor
+    coefficients, alone and beside the rotors' sum, at that power and the other. A symmetric vehicle's
+    effects enter through its mixer's patterns (collective, roll, pitch, yaw: u1 + u2 + u3 + u4, ...), and
+    a model that split one into several terms is only reached back by moving them together."""
+    names = {x.name: x for x in expression.free_symbols if isinstance(x, sympy.Symbol)}
+    rotors = [names.get(n, sympy.Symbol(n)) for n in INPUT_NAMES]
+    groups: dict[tuple[sympy.Expr, int], np.ndarray] = {}
+    for mono, c in sympy.expand(expression).as_coefficients_dict().items():
+        key = _rotor_power(mono)
+        if key is not None:
+            x, p = key
+            cof = _cofactor(mono)
+            groups.setdefault((cof, p), np.zeros(len(rotors)))[rotors.index(x)] += float(c)
+    patterns = [np.array((1, *rest), float) for rest in itertools.product((1, -1), repeat=len(rotors) - 1)]
+    total = patterns[0]  # the rotors' sum
+    out: list[list[sympy.Expr]] = []
+    for (cof, p), c in groups.items():
+        if np.count_nonzero(c) < 2:
+            continue
+        alone = max(patterns, key=lambda s: abs(float(c @ s)))
+        centred = c - c.mean()  # the part the sum leaves: the pattern beside the sum is fitted to it
+        beside = max(patterns[1:],
+                     key=lambda s: abs(float(centred @ (s - s.mean()))) / np.linalg.norm(s - s.mean()))
+        keep = [t for t in current if not _in_group(t, cof, p)]
+        for signs in ([alone], [beside, total]):
+            for q in (p, 3 - p):
+                terms = [*keep, *(cof * sympy.Add(*[int(k) * x**q for k, x in zip(s, rotors, strict=True)])
+                                  for s in signs)]
+                if _key(terms) != _key(current) and len(set(terms)) == len(terms) and terms not in out:
+                    out.append(terms)
+    return out
+
+
+def _rotor_power(mono: sympy.Expr) -> tuple[sympy.Symbol, int] | None:
+    """(the rotor speed, its power 1 or 2) of a monomial with one rotor speed, else None."""
+    family = _rotors(mono)
+    if len(family) != 1:
+        return None
+    x = next(iter(family))
+    p = mono.as_powers_dict().get(x, 0)
+    return (x, int(p)) if p in (1, 2) else None
+
+
+def _in_group(term: sympy.Expr, cof: sympy.Expr, p: int) -> bool:
+    """Whether every monomial of the term is a rotor speed at power p times the cofactor cof."""
+    monos = sympy.Add.make_args(sympy.expand(term))
+    return all((k := _rotor_power(m)) is not None and k[1] == p and _cofactor(m) == cof for m in monos)
 
 
 def _rotors(term: sympy.Expr) -> set[sympy.Symbol]:

@@ -174,10 +174,13 @@ def check_expression(expr: sympy.Expr) -> None:
 def complexity(expr: sympy.Expr) -> int:
     """The size of an expression: the number of nodes in its sympy tree, an integer power counted as one
     unary operator (its exponent is no node of its own) and an absolute value as two, as a square root
-    (Pow(x, 1/2): x and its exponent): a kink costs what a fractional power does."""
+    (Pow(x, 1/2): x and its exponent): a kink costs what a fractional power does; a sign costs nothing
+    (u1 - u2 is as large as u1 + u2: the mixer's patterns are alike in size)."""
     nodes = list(sympy.preorder_traversal(expr))
+    signs = sum((2 if len(node.args) == 2 else 1) for node in nodes
+                if node.is_Mul and any(a is sympy.S.NegativeOne for a in node.args))
     return (len(nodes) - sum(1 for node in nodes if node.is_Pow and node.exp.is_Integer)
-            + sum(1 for node in nodes if isinstance(node, sympy.Abs)))
+            + sum(1 for node in nodes if isinstance(node, sympy.Abs)) - signs)
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:

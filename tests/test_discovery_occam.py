@@ -211,6 +211,11 @@ def test_an_absolute_value_costs_what_a_square_root_costs() -> None:
     assert complexity(wx * wy) == 3
     assert complexity(2 * wz**2 + wy) == 6  # Add(Mul(2, Pow(wz)), wy)
     assert complexity(u1**2 * wz) == 4
+    u2, u3, u4 = (PRIMITIVE_SYMBOLS[f"u{i}"] for i in (2, 3, 4))
+    # a sign is free: the mixer's patterns are alike in size, and so are a product and its negative
+    assert complexity(wz * (u1 - u2 + u3 - u4)) == complexity(wz * (u1 + u2 + u3 + u4)) == 7
+    assert complexity(-u1 * wz) == complexity(u1 * wz) == 3
+    assert complexity(-u1 * u2 * wz) == complexity(u1 * u2 * wz) == 4
     assert complexity(sympy.Abs(u1) * wz) == complexity(sympy.sqrt(u1) * wz) == 5
     assert complexity(wz * sympy.Abs(wz)) == 5  # drag's v|v|: one kink
 

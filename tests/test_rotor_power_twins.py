@@ -16,7 +16,12 @@ import sympy
 from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
 from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
-from identification.cv_polish import move_candidate, polish_by_cross_validation, rotor_power_twins
+from identification.cv_polish import (
+    move_candidate,
+    polish_by_cross_validation,
+    rotor_patterns,
+    rotor_power_twins,
+)
 from identification.engine import EngineSettings
 from identification.true_model import random_states
 
@@ -60,18 +65,41 @@ def _polish(rows: FoldedRows, start: list[sympy.Expr]) -> set[str]:
 
 
 def test_a_pick_in_squares_is_lowered_when_the_physics_is_linear_in_the_rotor_speeds():
-    rows = _rows([ONE, VB, WZ * (U1 - U2 + U3 - U4)], [0.1, -0.4, 2e-4], 3)
+    rows = _rows(LINEAR, [0.1, -0.4, 3e-4, 2e-4], 3)
     assert _polish(rows, SQUARED) == {str(s) for s in LINEAR}
 
 
 def test_a_pick_in_squares_stays_when_the_physics_is_quadratic():
-    rows = _rows([ONE, VB, WZ * (U1**2 - U2**2 + U3**2 - U4**2)], [0.1, -0.4, 2e-7], 4)
+    rows = _rows(SQUARED, [0.1, -0.4, 3e-7, 2e-7], 4)
     assert _polish(rows, SQUARED) == {str(s) for s in SQUARED}
     assert _polish(rows, LINEAR) == {str(s) for s in SQUARED}  # and a linear pick is raised
 
 
 def test_a_moments_rotor_drag_is_lowered_beside_its_squared_thrust():
     thrust = U1**2 - U2**2 - U3**2 + U4**2
-    rows = _rows([thrust, WZ * (U1 - U2 + U3 - U4)], [1e-5, 2e-4], 5)
+    rows = _rows([thrust, WZ * U1, WZ * (U1 + U2 - U3 + U4)], [1e-5, 3e-4, 2e-4], 5)
     start = [thrust, WZ * U1**2, WZ * (U1**2 + U2**2 - U3**2 + U4**2)]
     assert _polish(rows, start) == {str(s) for s in [thrust, WZ * U1, WZ * (U1 + U2 - U3 + U4)]}
+
+
+def test_the_patterns_merge_a_cofactors_rotor_terms_into_the_nearest_mixer_pattern():
+    thrust = U1**2 - U2**2 - U3**2 + U4**2
+    start = [thrust, WZ * U2**2, WZ * (U1**2 + U2**2 + U3**2 - U4**2), VB]
+    # -9e-8 wz (u1^2 - u2^2 + u3^2 - u4^2) split: 1.8e-7 wz u2^2 - 9e-8 wz (u1^2 + u2^2 + u3^2 - u4^2)
+    fitted = 8e-5 * thrust + 1.8e-7 * start[1] - 9e-8 * start[2] - 0.4 * VB
+    moves = [[str(t) for t in m if t not in start] for m in rotor_patterns(fitted, start)]
+    assert ["wz*(u1**2 - u2**2 + u3**2 - u4**2)"] in moves  # the nearest pattern, alone
+    assert ["wz*(u1 - u2 + u3 - u4)"] in moves  # and in the other power
+    assert ["wz*(u1 - u2 + u3 - u4)", "wz*(u1 + u2 + u3 + u4)"] in moves  # beside the rotors' sum
+    # the merged group's terms left, the others kept
+    alone = next(m for m in rotor_patterns(fitted, start) if WZ * (U1 - U2 + U3 - U4) in m and len(m) == 3)
+    assert set(alone) == {thrust, VB, WZ * (U1 - U2 + U3 - U4)}
+    assert rotor_patterns(0.1 * VB + 2e-7 * WZ * U1**2, [VB, WZ * U1**2]) == []  # one rotor: no pattern
+
+
+def test_the_polish_merges_a_split_yaw_pattern_with_its_small_common_part():
+    thrust = U1**2 - U2**2 - U3**2 + U4**2
+    truth = [thrust, WZ * (U1 - U2 + U3 - U4), WZ * (U1 + U2 + U3 + U4)]
+    rows = _rows(truth, [1e-5, 2e-4, -4e-5], 6)
+    start = [thrust, WZ * U2**2, WZ * (U1**2 + U2**2 + U3**2 - U4**2)]
+    assert _polish(rows, start) == {str(s) for s in truth}
