@@ -1,12 +1,16 @@
-"""Rotor speeds' power twins in the cross-validated polish (identification.cv_polish.rotor_power_twins).
+"""Rotor speeds' power twins and the mixer's patterns in the cross-validated polish
+(identification.cv_polish.rotor_power_twins, rotor_patterns).
 
 Rotor speeds vary a few per cent about hover in flight, so u_i and u_i^2 are near twins in every product, and
 a model written in one family is reached from the other only by moving several terms together: on
 realistic-sensor fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two
 terms, where the SITL's rotor drag is linear in the rotor speeds. The polish now scores the pick with every
 square of a rotor speed lowered, and with every speed raised, in all terms at once and in the terms of each
-cofactor apart (a roll moment's thrust terms u_i^2 beside its rotor drag wz u_i). Seeded, small synthetic
-data with the rotor speeds spread over 0..1000 rad/s (the families far apart)."""
+cofactor apart (a roll moment's thrust terms u_i^2 beside its rotor drag wz u_i). It also merges a cofactor's
+rotor terms into the mixer's sign pattern nearest their fitted coefficients, alone and beside the rotors' sum
+(session 37: closed-loop realistic-sensor fang-chen-aero, seed 5, dwx's wz u2^2 and wz (u1^2 + u2^2 + u3^2 -
+u4^2) for the SITL's wz (u1 - u2 + u3 - u4)). Seeded, small synthetic data with the rotor speeds spread over
+0..1000 rad/s (the families far apart); the power-twin truths are no pattern, so the polish stops at them."""
 
 from __future__ import annotations
 
