@@ -179,6 +179,7 @@ def rotor_patterns(expression: sympy.Expr, current: list[sympy.Expr]) -> list[li
             groups.setdefault((cof, p), np.zeros(len(rotors)))[rotors.index(x)] += float(c)
     patterns = [np.array((1, *rest), float) for rest in itertools.product((1, -1), repeat=len(rotors) - 1)]
     total = patterns[0]  # the rotors' sum
+    membership = {t: _group(t) for t in current}  # each term expanded once, not once per group
     out: list[list[sympy.Expr]] = []
     for (cof, p), c in groups.items():
         if np.count_nonzero(c) < 2:
@@ -187,7 +188,7 @@ def rotor_patterns(expression: sympy.Expr, current: list[sympy.Expr]) -> list[li
         centred = c - c.mean()  # the part the sum leaves: the pattern beside the sum is fitted to it
         beside = max(patterns[1:],
                      key=lambda s: abs(float(centred @ (s - s.mean()))) / np.linalg.norm(s - s.mean()))
-        keep = [t for t in current if not _in_group(t, cof, p)]
+        keep = [t for t in current if membership[t] != (cof, p)]
         for signs in ([alone], [beside, total]):
             for q in (p, 3 - p):
                 terms = [*keep, *(cof * sympy.Add(*[int(k) * x**q for k, x in zip(s, rotors, strict=True)])
@@ -207,10 +208,16 @@ def _rotor_power(mono: sympy.Expr) -> tuple[sympy.Symbol, int] | None:
     return (x, int(p)) if p in (1, 2) else None
 
 
-def _in_group(term: sympy.Expr, cof: sympy.Expr, p: int) -> bool:
-    """Whether every monomial of the term is a rotor speed at power p times the cofactor cof."""
-    monos = sympy.Add.make_args(sympy.expand(term))
-    return all((k := _rotor_power(m)) is not None and k[1] == p and _cofactor(m) == cof for m in monos)
+def _group(term: sympy.Expr) -> tuple[sympy.Expr, int] | None:
+    """(cofactor, power) when every monomial of the term is one rotor speed at that power times that
+    cofactor, else None."""
+    keys = set()
+    for m in sympy.Add.make_args(sympy.expand(term)):
+        k = _rotor_power(m)
+        if k is None:
+            return None
+        keys.add((_cofactor(m), k[1]))
+    return next(iter(keys)) if len(keys) == 1 else None
 
 
 def _rotors(term: sympy.Expr) -> set[sympy.Symbol]:
