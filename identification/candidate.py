@@ -30,10 +30,11 @@ class Candidate:
     engine: str = ""
     holdout_loss: float | None = None
     predict: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False, compare=False)
-    # how well the fit rows identify its terms: the weakest term's t ratio (collinearity.weakest_t);
+    # how well the rows its coefficients are measured on identify its terms (the fit rows; the fit and pick
+    # rows under cross-validation, SelectionSettings.identify_on_pick_rows): the weakest term's t ratio;
     # None: not measured (an engine whose candidates are not linear in their terms)
     weakest_t: float | None = None
-    largest_vif: float | None = None  # the largest variance inflation factor of its terms on the fit rows
+    largest_vif: float | None = None  # the largest variance inflation factor of its terms on those rows
     # mean d(target)/d(own state) on the fit rows (1/s) and its standard error (identification.self_feedback);
     # None: not measured; the error only for a positive slope
     self_feedback: float | None = None

@@ -17,6 +17,7 @@ all the folds (identification.refit).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -25,7 +26,7 @@ from scipy import sparse
 
 from identification.body_frame import expression_columns
 from identification.candidate import Candidate
-from identification.collinearity import term_shapes
+from identification.collinearity import term_identification, term_shapes
 from identification.metrics import loss as loss_fn
 from identification.sparse import single_threaded_blas
 from identification.weak_noise import Whitener
@@ -39,17 +40,23 @@ class FoldedRows:
     them computed once (candidates of one target share most terms)."""
 
     def __init__(self, parts: Sequence[Part], folds: int, blocks_per_fold: int = 1,
-                 fit_noise: Whitener | None = None):
+                 fit_noise: Whitener | None = None, all_noise: Whitener | None = None,
+                 identify_on_all: bool = False):
         """parts: (X (N,16), y (N,) in the target's unit, the weak operator of those rows or None, the gap
         in rows either side of a held-out block); folds >= 2; the rows are cut into folds x blocks_per_fold
         contiguous blocks, dealt to the folds in turn (fold k holds blocks k, k + folds, ...); fewer blocks
         per fold where a block would be shorter than MIN_BLOCK_GAPS gaps; `usable` False when even one
         block per fold would be (too few rows: the caller picks on the pick rows instead). fit_noise: the
         first part's weak rows' whitener when the log states its targets' noise (weak_noise), for the t
-        ratios of moves fitted on those rows (cv_polish.move_candidate)."""
+        ratios of moves fitted on those rows (cv_polish.move_candidate). identify_on_all: a model's t ratios
+        and VIFs (identification) are measured on all the parts' rows, under all_noise (the whitener of
+        every part's weak rows in turn, weak_noise.stacked_whitener) when given, else on the fit rows under
+        fit_noise."""
         if folds < 2:
             raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
         self.fit_noise = fit_noise
+        self.all_noise = all_noise
+        self.identify_on_all = identify_on_all
         self.parts = [p for p in parts if len(p[0])]
         ys = [np.asarray(y, float) if op is None else np.asarray(op @ y, float) for _, y, op, _ in self.parts]
         self.y = np.concatenate(ys) if ys else np.zeros(0)
@@ -98,6 +105,17 @@ class FoldedRows:
         a = np.column_stack([self.column(s)[:self._first] for s in shapes])
         op, gap = (self.parts[0][2], self.parts[0][3]) if self.parts else (None, 0)
         return a, self.y[:self._first], None if op is None else gap
+
+    def identification(self, shapes: Sequence[sympy.Expr]) -> tuple[float, float]:
+        """(weakest t ratio, largest VIF) of a linear model of these terms (collinearity.term_identification)
+        on the rows its coefficients are measured on: all the parts' rows with identify_on_all (those the
+        chosen structure is refit on, identification.refit), else the fit rows."""
+        if not self.identify_on_all:
+            a, y, lag = self.fit_part(shapes)
+            return term_identification(a, y, lag, self.fit_noise)
+        a = np.column_stack([self.column(s) for s in shapes])
+        lag = None if not self.parts or self.parts[0][2] is None else self.parts[0][3]
+        return term_identification(a, self.y, lag, self.all_noise)
 
     def prepare(self, shapes: Sequence[sympy.Expr]) -> None:
         """Precompute the Gram matrices of these terms (finite ones) over all rows and over each fold's
@@ -183,3 +201,17 @@ def attach_cross_validated(candidates: Sequence[Candidate], rows: FoldedRows, ki
                 c.holdout_loss = rows.loss(c.expression, kind)
             except (ValueError, TypeError, ZeroDivisionError, OverflowError, np.linalg.LinAlgError):
                 c.holdout_loss = float("inf")
+
+
+def identify_on(candidates: Sequence[Candidate], rows: FoldedRows) -> None:
+    """Re-aim each measured candidate's t ratio and VIF (Candidate.measure) at the rows
+    FoldedRows.identification measures on; a candidate its engine does not measure (not linear in its
+    terms) stays unmeasured."""
+    for c in candidates:
+        if c.measure is None and c.weakest_t is None and c.largest_vif is None:
+            continue
+        shapes = term_shapes(c.expression)
+        if not shapes:
+            continue
+        c.weakest_t = c.largest_vif = None
+        c.measure = functools.partial(rows.identification, shapes)

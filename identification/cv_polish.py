@@ -7,8 +7,9 @@ constant (the accelerometer's bias); genetic programming had found wz (u1 - u2 +
 candidates without the constant. Here the pick's terms are swapped one at a time for any term of any
 candidate, removed, or one such term added; every move is scored by the same cross-validation as the
 candidates (identification.cross_validation) and joins them, and the pick's own rule (identification.pareto:
-identified on the fit rows, no anti-damping, the simplest within tolerance of the best) picks again, until
-the pick stays (at most `rounds` times). The moves are fitted on the fit rows, as the engine's candidates.
+identified on the fit and pick rows (SelectionSettings.identify_on_pick_rows), no anti-damping, the
+simplest within tolerance of the best) picks again, until the pick stays (at most `rounds` times). The
+moves are fitted on the fit rows, as the engine's candidates.
 Beside every candidate's terms the moves may use `extra` terms: identify passes the engine's shape twins of
 the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins). On realistic-sensor
 fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has the lower cross-validated
@@ -31,7 +32,7 @@ import numpy as np
 import sympy
 
 from identification.candidate import Candidate
-from identification.collinearity import term_identification, term_shapes
+from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
 from identification.engine_settings import SelectionSettings
 from identification.metrics import loss as loss_fn
@@ -243,14 +244,14 @@ def _power_twin(term: sympy.Expr, lower: bool) -> sympy.Expr:
 def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows, kind: str,
                engine: str) -> Candidate | None:
     """A move fitted (least squares) on the fit rows, its held-out loss the cross-validated one, its t
-    ratios and VIF measured on the fit rows when the pick asks; None when its expression does not read
-    back as its terms."""
-    a, y, lag = folded.fit_part(shapes)
+    ratios and VIF measured when the pick asks (FoldedRows.identification: on the fit and pick rows, or
+    the fit rows alone); None when its expression does not read back as its terms."""
+    a, y, _lag = folded.fit_part(shapes)
     coef = np.linalg.lstsq(a, y, rcond=None)[0]
     c = terms_candidate(shapes, coef, engine)
     back = term_shapes(c.expression)
     if _key(back) != _key(shapes) or len(back) != len(shapes):
         return None  # the expression would not read back as these terms (a zero coefficient)
     c.complexity, c.train_loss, c.holdout_loss = model_size(shapes), loss_fn(y, a @ coef, kind), cv_loss
-    c.measure = lambda: term_identification(a, y, lag, folded.fit_noise)
+    c.measure = lambda: folded.identification(shapes)
     return c

@@ -234,6 +234,12 @@ class SelectionSettings:
     # moves scored alike (identification.cv_polish) and refits the chosen structure on both; 0: the pick
     # rows alone (as before session 15; docs/discovery-log.md "Where discovery stands (session 15)")
     cv_folds: int = 5
+    # with cv_folds > 1, the t ratio and VIF rules (min_t, max_vif) are measured on the fit and pick rows,
+    # those the chosen structure's coefficients are refit on (identification.cross_validation), not on the
+    # fit rows alone: a term is identified by the rows that fit it. Realistic-sensor fang-chen-aero (seed 5,
+    # weak form): fz's wz^2 has t 1.6-3.1 on the fit rows, where the yaw rate barely varies (its spread 3.7
+    # against 28.5 on the pick rows), and 17-19 on both; false: the fit rows alone (before session 38)
+    identify_on_pick_rows: bool = True
     # the rows are cut into cv_folds x this many contiguous blocks, dealt to the folds in turn: a fold's
     # held-out rows spread over the flight (one block per fold makes each fold's fit extrapolate to a
     # regime it never saw, such as the fast fall of an open-loop flight)

@@ -51,7 +51,7 @@ from identification.collinearity import (
     term_shapes,
     terms_collinearity,
 )
-from identification.cross_validation import FoldedRows, attach_cross_validated
+from identification.cross_validation import FoldedRows, attach_cross_validated, identify_on
 from identification.cv_polish import polish_by_cross_validation
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
@@ -69,7 +69,7 @@ from identification.refit import refit_rows
 from identification.self_feedback import mark_self_feedback
 from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
-from identification.weak_noise import stated_whitener, uncertain_terms
+from identification.weak_noise import stacked_whitener, stated_whitener, uncertain_terms
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
@@ -276,7 +276,10 @@ def identify(
             folded = FoldedRows(
                 [(X[ok], y[ok], ops["train"], _gap_rows(roles.fit.t[ok], ops["train"], gap_s)),
                  (Xp[okp], yp[okp], ops["pick"], _gap_rows(roles.pick.t[okp], ops["pick"], gap_s))],
-                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold, fit_noise=noise)
+                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold, fit_noise=noise,
+                all_noise=stacked_whitener(
+                    [noise, stated_whitener(roles.pick, okp, ops["pick"], j)]) if noise is not None else None,
+                identify_on_all=settings.selection.identify_on_pick_rows)
             if not folded.usable:
                 line = (f"note: {name}: the fit and pick rows ({len(folded.y)}) are too few for "
                         f"{settings.selection.cv_folds}-fold cross-validation with {gap_s:g} s gaps beside "
@@ -286,6 +289,8 @@ def identify(
                 folded = None
         if folded is not None:
             score = functools.partial(attach_cross_validated, rows=folded, kind=loss)
+            if folded.identify_on_all:
+                identify_on(candidates, folded)
             per_fold = folded.blocks // folded.folds
             out["evidence"] = (f"blocked {folded.folds}-fold cross-validation over the fit and pick rows "
                               f"({per_fold} block{'s' if per_fold > 1 else ''} per fold)")
@@ -339,10 +344,13 @@ def identify(
         else:
             coll = model_collinearity(chosen.expression, X[ok], (library_columns[ok], library_names))
         out["identifiability"] = coll.as_dict()
-        # what the pick's t ratios (selection.min_t) took as each term's standard error on the fit rows
+        # what the pick's t ratios (selection.min_t) took as each term's standard error
         out["identifiability"]["pick_t_ratios"] = (
             "under the log's stated noise of the weak rows" if noise is not None
             else "from the residual's effective sample size")
+        # and on which rows (SelectionSettings.identify_on_pick_rows)
+        out["identifiability"]["pick_t_rows"] = (
+            "fit and pick rows" if folded is not None and folded.identify_on_all else "fit rows")
         lines += describe(name, coll)
         if chosen.standard_errors:
             out["identifiability"]["standard_errors"] = {term: {"coefficient": k, "standard_error": e}

@@ -10,7 +10,8 @@ as equal on noise-free data. At 1e-4 it hid real terms worth under 1e-4 of the s
 flight's damping term, 13 % better on the pick rows); whether a small term is real is left to rel_tol and
 the identification rules below, which do not depend on the target's scale.
 Before that, candidates the flight does not identify are set aside: those with a term whose t ratio on
-the fit rows (coefficient over its standard error, inflated by the term's VIF; beside a constant offset
+the fit rows (on the fit and pick rows when the pick cross-validates: SelectionSettings.identify_on_pick_rows)
+(coefficient over its standard error, inflated by the term's VIF; beside a constant offset
 when the candidate has no constant: a term the flight cannot tell from a sensor's bias is not identified)
 is below `min_t` (identification.collinearity.term_identification; measured by the engines that can, else
 None), or a term whose VIF there is above `max_vif` (the flight barely separates it from the others), as
@@ -146,7 +147,7 @@ def excited(candidates: Sequence[Candidate], constant_loss: float, settings: Sel
 
 
 def _identified(c: Candidate, settings: SelectionSettings) -> bool:
-    """False when the fit rows do not identify the candidate's terms (module docstring)."""
+    """False when the rows it is measured on do not identify the candidate's terms (module docstring)."""
     c.measured()
     t_ok = c.weakest_t is None or c.weakest_t >= settings.min_t
     return t_ok and (c.largest_vif is None or c.largest_vif <= settings.max_vif)

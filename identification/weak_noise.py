@@ -63,6 +63,22 @@ class Whitener:
                                    check_finite=False)
 
 
+def stacked_whitener(parts: list[Whitener | None]) -> Whitener | None:
+    """The whitener of several roles' weak rows one after the other (their noises independent: a
+    block-diagonal covariance); None when any part has none."""
+    if not parts or any(w is None for w in parts):
+        return None
+    band = max(w.bandwidth for w in parts)
+    factor = np.zeros((band + 1, sum(w.rows for w in parts)))
+    at = 0
+    for w in parts:
+        m = w.rows
+        for i in range(w.bandwidth + 1):  # L[i + j, j] of this block only (no entry past its last row)
+            factor[i, at: at + m - i] = w.factor[i, : m - i]
+        at += m
+    return Whitener(factor, band)
+
+
 def raw_noise_operator(t: np.ndarray, flight: np.ndarray | None, stencil: tuple[float, ...]
                        ) -> sparse.csr_matrix:
     """B (N, P): raw rows' noise = B e with e white (P,), each contiguous run of a flight's rows (t s) on

@@ -110,8 +110,10 @@ def test_identify_records_the_cross_validation_and_refits_on_the_folds(tmp_path)
                                        "(2 blocks per fold)")
     assert record["coefficients_fitted_on"].startswith("fit and pick rows")
     assert model.targets["dwx"].metrics["validation"]["r2"] > 0.99
+    assert model.extra["identifiability"]["targets"]["dwx"]["pick_t_rows"] == "fit and pick rows"
     plain = identify(data, engine="sparse", targets=["dwx"], loss="squared", settings=base, progress=False)
     assert plain.extra["data"]["pick_evidence"] == "pick rows"
+    assert plain.extra["identifiability"]["targets"]["dwx"]["pick_t_rows"] == "fit rows"
 
 
 def test_a_flight_too_short_for_the_folds_and_their_gaps_is_picked_on_the_pick_rows(capsys):
@@ -183,3 +185,34 @@ def test_the_polish_keeps_a_small_term_the_folds_pin_down():
     tolerance_alone = replace(selection, cv_polish_z=0.0)
     loose = polish_by_cross_validation(picked, [picked], rows, "absolute", tolerance_alone, lambda new: None)
     assert small not in term_shapes(loose.expression)
+
+
+def test_a_term_the_pick_rows_excite_is_identified_on_the_rows_that_refit_it():
+    """The t and VIF rules measure a model on the fit and pick rows (SelectionSettings.identify_on_pick_rows),
+    the rows its coefficients are refit on: a yaw term whose rate barely varies on the fit rows and swings
+    on the pick rows is not identified by the fit rows and is by both; identify_on re-aims a candidate
+    measured on the fit rows (the engine's) at those rows."""
+    from identification.collinearity import term_identification
+    from identification.cross_validation import identify_on
+
+    rng = np.random.default_rng(21)
+    X = _rows(5000, 13)
+    X[:4000, 11] = 0.05 * np.sin(np.arange(4000) * 0.003)  # wz (rad/s): small on the fit rows
+    X[4000:, 11] = 1.5 * np.sin(np.arange(1000) * 0.01)  # and swinging on the pick rows
+    shapes = [sympy.Integer(1), S["vb"] * S["wx"], S["wz"] ** 2]
+    y = expression_columns(shapes, X) @ np.array([0.1, -0.7, 0.02])
+    y = y + 0.05 * rng.standard_normal(len(y))
+    parts = [(X[:4000], y[:4000], None, 3), (X[4000:], y[4000:], None, 3)]
+    fit_only = FoldedRows(parts, folds=5)
+    both = FoldedRows(parts, folds=5, identify_on_all=True)
+    a, yy, lag = fit_only.fit_part(shapes)
+    assert fit_only.identification(shapes) == term_identification(a, yy, lag)
+    assert fit_only.identification(shapes)[0] < 5.0 < both.identification(shapes)[0]
+    move = move_candidate(shapes, 1.0, both, "squared", "test")
+    assert move.measured().weakest_t == both.identification(shapes)[0]
+    engine_side = move_candidate(shapes, 1.0, fit_only, "squared", "test").measured()
+    unmeasured = move_candidate(shapes, 1.0, fit_only, "squared", "test")
+    unmeasured.measure = None  # as an engine that does not measure its candidates (not linear in terms)
+    identify_on([engine_side, unmeasured], both)
+    assert engine_side.measured().weakest_t == pytest.approx(both.identification(shapes)[0], rel=1e-9)
+    assert unmeasured.measured().weakest_t is None

@@ -165,3 +165,24 @@ def test_refit_rows_uses_the_whiteners_and_reports_the_loss_on_the_plain_rows():
     # a part without a whitener: ordinary least squares for all, not a mix of scales
     mixed = refit_rows(chosen, parts, "squared", 0, 0, [whiteners[0], None])
     assert float(mixed.expression.coeff(wx)) == pytest.approx(float(plain.expression.coeff(wx)), rel=1e-9)
+
+
+def test_a_stacked_whitener_whitens_each_roles_rows_as_its_own_does():
+    """Two roles' weak rows one after the other (fit, then pick): their noises are independent, so the
+    stacked whitener is block-diagonal and whitens each block as that role's whitener does."""
+    from identification.weak_noise import stacked_whitener
+
+    rng = np.random.default_rng(3)
+    t1, t2 = np.arange(900) * DT, 10.0 + np.arange(500) * DT
+    w1 = weak_whitener(weak_operator(t1, WeakSettings(half_window_s=0.05, stride_s=0.02)), t1, None,
+                       STEP_DIFFERENCE)
+    w2 = weak_whitener(weak_operator(t2, WeakSettings(half_window_s=0.03, stride_s=0.02)), t2, None,
+                       STEP_MEAN)
+    both = stacked_whitener([w1, w2])
+    assert both.rows == w1.rows + w2.rows and both.bandwidth == max(w1.bandwidth, w2.bandwidth)
+    a = rng.standard_normal((both.rows, 2))
+    np.testing.assert_allclose(both.apply(a), np.vstack([w1.apply(a[: w1.rows]), w2.apply(a[w1.rows:])]),
+                               rtol=1e-10, atol=1e-12)
+    lower = both.lower().toarray()
+    assert not np.any(lower[w1.rows:, : w1.rows])  # nothing ties the pick rows' noise to the fit rows'
+    assert stacked_whitener([w1, None]) is None and stacked_whitener([]) is None
