@@ -110,6 +110,8 @@ class FoldedRows:
         """(weakest t ratio, largest VIF) of a linear model of these terms (collinearity.term_identification)
         on the rows its coefficients are measured on: all the parts' rows with identify_on_all (those the
         chosen structure is refit on, identification.refit), else the fit rows."""
+        if not shapes:
+            return float("inf"), 1.0  # no term to measure (as term_identification for no varying term)
         if not self.identify_on_all:
             a, y, lag = self.fit_part(shapes)
             return term_identification(a, y, lag, self.fit_noise)

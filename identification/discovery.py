@@ -168,6 +168,11 @@ class DiscoveryEngine:
         # the fit rows' whitener when the log states its targets' noise (weak_noise; set by identify): the
         # t ratios of the pick's identification rule under that noise (collinearity.term_identification)
         self.noise: Whitener | None = None
+        # the rows the pick measures a candidate's terms on, when not the fit rows (set by identify:
+        # FoldedRows.identification, the fit and pick rows; SelectionSettings.identify_on_pick_rows): term
+        # shapes -> (weakest t ratio, largest VIF). The polish and the merge repair then keep the moves the
+        # pick would
+        self.identification: Callable[[list[sympy.Expr]], tuple[float, float]] | None = None
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
         self._features: dict[int, np.ndarray] = {}  # id(candidate) -> its feature indices in the space
@@ -780,7 +785,10 @@ class DiscoveryEngine:
             engine=f"{self.name}(+polish)",
             predict=lambda X_, cf=cf, k=const: fn(columns.primitives(X_)) @ cf + k,
         )
-        c.weakest_t, c.largest_vif = term_identification(theta[:, active], y, lag, self.noise)
+        if self.identification is not None:
+            c.measure = functools.partial(_measure_shapes, self.identification, c.expression)
+        else:
+            c.weakest_t, c.largest_vif = term_identification(theta[:, active], y, lag, self.noise)
         return c
 
     def _loss(self, y: np.ndarray, pred: np.ndarray, loss: str) -> float:
@@ -868,7 +876,9 @@ class DiscoveryEngine:
                     predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
                 )
             )
-            out[-1].measure = functools.partial(_measure_terms, theta, idx, y, lag, self.noise)
+            out[-1].measure = functools.partial(_measure_terms, theta, idx, y, lag, self.noise) \
+                if self.identification is None else \
+                functools.partial(_measure_shapes, self.identification, out[-1].expression)
             if space_indices is not None:
                 self._features[id(out[-1])] = space_indices[js]
         return out
@@ -956,7 +966,9 @@ class DiscoveryEngine:
                 )
             )
             shapes = term_shapes(expr)  # every additive term of the sum with its own coefficient
-            if shapes:
+            if shapes and self.identification is not None:
+                out[-1].measure = functools.partial(self.identification, shapes)
+            elif shapes:
                 out[-1].weakest_t, out[-1].largest_vif = term_identification(_lambdify(prims, shapes)(P), y)
             extras.append(extra)
         return self._refit_expanded(best, extras, prims, columns, X, y, loss) or out
@@ -1025,6 +1037,13 @@ def _measure_terms(theta: np.ndarray, idx: np.ndarray, y: np.ndarray, lag: int |
     """(weakest t ratio, largest VIF) of the columns idx of theta (N,p) fitting y (N,): a sparse candidate's
     deferred measure (Candidate.measure)."""
     return term_identification(theta[:, idx], y, lag, noise)
+
+
+def _measure_shapes(identification: Callable[[list[sympy.Expr]], tuple[float, float]],
+                    expression: sympy.Expr) -> tuple[float, float]:
+    """(weakest t ratio, largest VIF) of an expression's additive terms on the rows `identification`
+    measures on (DiscoveryEngine.identification)."""
+    return identification(term_shapes(expression))
 
 
 def _rows_key(X: np.ndarray) -> str:

@@ -258,6 +258,17 @@ def identify(
             eng.weak = (ops["train"], ops["pick"])
         noise = stated_whitener(roles.fit, ok, ops["train"], j) if settings.selection.stated_noise_t else None
         eng.noise = noise
+        folded = None
+        if settings.selection.cv_folds > 1:  # the pick's evidence: blocked K-fold CV over fit and pick rows
+            folded = FoldedRows(
+                [(X[ok], y[ok], ops["train"], _gap_rows(roles.fit.t[ok], ops["train"], gap_s)),
+                 (Xp[okp], yp[okp], ops["pick"], _gap_rows(roles.pick.t[okp], ops["pick"], gap_s))],
+                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold, fit_noise=noise,
+                all_noise=stacked_whitener(
+                    [noise, stated_whitener(roles.pick, okp, ops["pick"], j)]) if noise is not None else None,
+                identify_on_all=settings.selection.identify_on_pick_rows)
+            if folded.usable and folded.identify_on_all and hasattr(eng, "identification"):
+                eng.identification = folded.identification  # the engine's polish keeps what the pick would
         bar = _Bar(name, progress and processes == 1)
         start = time.perf_counter()
         try:
@@ -271,15 +282,7 @@ def identify(
         out: dict[str, Any] = {"engine_notes": list(getattr(eng, "notes", [])), "lines": []}
         lines = out["lines"]  # this target's warnings, after its engine notes
         candidates += physics_candidates(name, X[ok], y[ok], loss, ops["train"], noise)
-        folded = None
-        if settings.selection.cv_folds > 1:  # the pick's evidence: blocked K-fold CV over fit and pick rows
-            folded = FoldedRows(
-                [(X[ok], y[ok], ops["train"], _gap_rows(roles.fit.t[ok], ops["train"], gap_s)),
-                 (Xp[okp], yp[okp], ops["pick"], _gap_rows(roles.pick.t[okp], ops["pick"], gap_s))],
-                settings.selection.cv_folds, settings.selection.cv_blocks_per_fold, fit_noise=noise,
-                all_noise=stacked_whitener(
-                    [noise, stated_whitener(roles.pick, okp, ops["pick"], j)]) if noise is not None else None,
-                identify_on_all=settings.selection.identify_on_pick_rows)
+        if folded is not None:
             if not folded.usable:
                 line = (f"note: {name}: the fit and pick rows ({len(folded.y)}) are too few for "
                         f"{settings.selection.cv_folds}-fold cross-validation with {gap_s:g} s gaps beside "

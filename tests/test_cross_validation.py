@@ -216,3 +216,29 @@ def test_a_term_the_pick_rows_excite_is_identified_on_the_rows_that_refit_it():
     identify_on([engine_side, unmeasured], both)
     assert engine_side.measured().weakest_t == pytest.approx(both.identification(shapes)[0], rel=1e-9)
     assert unmeasured.measured().weakest_t is None
+
+
+
+def test_the_pick_keeps_a_term_only_the_pick_rows_excite():
+    """Through the pick's own rule (pareto.select over cross-validated candidates): measured on the fit and
+    pick rows, the model with the yaw term is identified and picked (its cross-validated loss is far
+    lower); measured on the fit rows alone, where the yaw rate barely varies, it is set aside."""
+    from identification.engine_settings import SelectionSettings
+
+    rng = np.random.default_rng(8)
+    X = _rows(5000, 17)
+    X[:4000, 11] = rng.uniform(-0.3, 0.3, 4000)  # wz (rad/s): small on the fit rows, swinging after
+    X[4000:, 11] = rng.uniform(-2.0, 2.0, 1000)
+    truth = [S["wx"] * S["wy"], S["wz"] ** 2]
+    y = expression_columns(truth, X) @ np.array([-0.02, 0.05]) + 0.05 * rng.standard_normal(5000)
+    parts = [(X[:4000], y[:4000], None, 3), (X[4000:], y[4000:], None, 3)]
+    picked = {}
+    for on_all in (True, False):
+        rows = FoldedRows(parts, folds=5, identify_on_all=on_all)
+        models = [[sympy.Integer(1), truth[0]], [sympy.Integer(1), *truth]]
+        candidates = [move_candidate(m, rows.terms_loss(m, "squared"), rows, "squared", "test")
+                      for m in models]
+        picked[on_all] = term_shapes(select(candidates, SelectionSettings(), scale=rows.scale).expression)
+        with_yaw = candidates[1].measured()
+        assert (with_yaw.weakest_t >= 5.0) == on_all, with_yaw.weakest_t
+    assert S["wz"] ** 2 in picked[True] and S["wz"] ** 2 not in picked[False]

@@ -161,3 +161,39 @@ def test_polish_joins_two_stand_ins_into_the_true_term() -> None:
            for joins in (True, False)}
     assert not got[True].has(sympy.Abs) and abs(float(got[True].coeff(vb**2)) - 0.3) < 3e-3, got[True]
     assert got[False].has(sympy.Abs), got[False]
+
+
+def test_the_polish_measures_its_moves_where_the_pick_does() -> None:
+    """With DiscoveryEngine.identification set (identify: FoldedRows.identification, the fit and pick rows)
+    the polish's moves are measured by it, not on the fit rows: a rule that identifies no term leaves the
+    polish nothing to take, where the fit rows let it swap in the true term."""
+    xi, u, _ = flight_rows(1500, 0, "fang-chen-buaa", Effects())
+    X = np.hstack([xi, u])
+    wx, wy, wz = (PRIMITIVE_SYMBOLS[n] for n in ("wx", "wy", "wz"))
+    results = {}
+    for hook in (None, "never"):
+        engine = DiscoveryEngine(DiscoverySettings(polish_passes=3))
+        space = engine.build_space(X)
+        columns = _Columns(space)
+        P = columns.primitives(X)
+        truth = 2.0 * wx * wy + 0.5 * wz**2 - 1.5 * wy
+        y = sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in space.primitives], truth)(*P.T)
+        y = y + 1e-3 * np.std(y) * np.random.default_rng(0).normal(size=len(y))
+        Xt, yt, Xh, yh = split_holdout(X, y)
+        prims = list(space.primitives)
+        asked: list[list[sympy.Expr]] = []
+        if hook == "never":
+            def never(shapes: list[sympy.Expr], asked: list = asked) -> tuple[float, float]:
+                asked.append(list(shapes))
+                return 0.0, float("inf")
+            engine.identification = never
+        wrong = engine._linear_candidate([wx * wy, wz**2 * sympy.Abs(wz), wy], prims, columns, Xt, yt,
+                                         "absolute", None)
+        attach_holdout([wrong], Xh, yh, "absolute")
+        F = columns(Xt, np.arange(len(space)))
+        pool = [i for i in range(len(space)) if space.rungs[i] == 1]
+        results[hook] = engine._polish(wrong, pool, columns, F, yt, Xt, Xh, yh, "absolute", float(np.std(yh)))
+        if hook == "never":
+            assert asked and all(shapes for shapes in asked)  # every move measured by the hook
+            assert wrong.measured().weakest_t == 0.0
+    assert results[None] and not results["never"]
