@@ -9,17 +9,18 @@ spread, about the float32 telemetry's rounding in a .tlog's targets) treats diff
 as equal on noise-free data. At 1e-4 it hid real terms worth under 1e-4 of the spread (a rotor-drag
 flight's damping term, 13 % better on the pick rows); whether a small term is real is left to rel_tol and
 the identification rules below, which do not depend on the target's scale.
-Before that, candidates the flight does not identify are set aside: those with a term whose t ratio on
-the fit rows (on the fit and pick rows when the pick cross-validates: SelectionSettings.identify_on_pick_rows)
-(coefficient over its standard error, inflated by the term's VIF; beside a constant offset
-when the candidate has no constant: a term the flight cannot tell from a sensor's bias is not identified)
-is below `min_t` (identification.collinearity.term_identification; measured by the engines that can, else
-None), or a term whose VIF there is above `max_vif` (the flight barely separates it from the others), as
-long as one candidate that passes exists. On closed-loop data the regressors are collinear and a model of tied
-terms with cancelling coefficients can have the lowest pick loss by fitting the targets' errors; it is not
-a model of the vehicle, and a controller derived from it can crash. Likewise a candidate whose
-self-feedback is positive beyond `max_self_feedback_t` standard errors (identification.self_feedback:
-anti-damping, which no rigid body with rotors and drag has) is set aside while one that passes exists.
+Before that, candidates the flight does not identify are set aside: those with a term whose t ratio
+(coefficient over its standard error, inflated by the term's VIF; beside a constant offset when the candidate
+has no constant: a term the flight cannot tell from a sensor's bias is not identified) on the rows it is
+measured on (the fit rows; the fit and pick rows when the pick cross-validates,
+SelectionSettings.identify_on_pick_rows) is below `min_t` (identification.collinearity.term_identification;
+measured by the engines that can, else None), or a term whose VIF there is above `max_vif` (the flight barely
+separates it from the others), as long as one candidate that passes exists. On closed-loop data the regressors
+are collinear and a model of tied terms with cancelling coefficients can have the lowest pick loss by fitting
+the targets' errors; it is not a model of the vehicle, and a controller derived from it can crash. Likewise a
+candidate whose self-feedback is positive beyond `max_self_feedback_t` standard errors
+(identification.self_feedback: anti-damping, which no rigid body with rotors and drag has) is set aside while
+one that passes exists.
 Where no candidate passes both, those without anti-damping are compared, else all (the plausibility check
 then flags what was picked).
 
