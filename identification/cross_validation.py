@@ -83,6 +83,9 @@ class FoldedRows:
         self._columns: dict[sympy.Expr, np.ndarray] = {}  # sympy expressions hash by structure
         self._index: dict[sympy.Expr, int] = {}  # prepare(): a term's column in the prepared Gram matrices
         self._pool: _FoldEquations | None = None
+        # identification() per term list: the engine's candidates are measured there, then re-aimed
+        # (identify_on) and asked again by the pick
+        self._identified: dict[tuple[sympy.Expr, ...], tuple[float, float]] = {}
 
     @property
     def scale(self) -> float:
@@ -112,12 +115,16 @@ class FoldedRows:
         chosen structure is refit on, identification.refit), else the fit rows."""
         if not shapes:
             return float("inf"), 1.0  # no term to measure (as term_identification for no varying term)
-        if not self.identify_on_all:
-            a, y, lag = self.fit_part(shapes)
-            return term_identification(a, y, lag, self.fit_noise)
-        a = np.column_stack([self.column(s) for s in shapes])
-        lag = None if not self.parts or self.parts[0][2] is None else self.parts[0][3]
-        return term_identification(a, self.y, lag, self.all_noise)
+        key = tuple(shapes)
+        if key not in self._identified:
+            if self.identify_on_all:
+                a, y = np.column_stack([self.column(s) for s in shapes]), self.y
+                lag = None if not self.parts or self.parts[0][2] is None else self.parts[0][3]
+                self._identified[key] = term_identification(a, y, lag, self.all_noise)
+            else:
+                a, y, lag = self.fit_part(shapes)
+                self._identified[key] = term_identification(a, y, lag, self.fit_noise)
+        return self._identified[key]
 
     def prepare(self, shapes: Sequence[sympy.Expr]) -> None:
         """Precompute the Gram matrices of these terms (finite ones) over all rows and over each fold's

@@ -25,7 +25,6 @@ common part; the merged pair has the lower cross-validated loss and a VIF of 2.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -35,6 +34,7 @@ from identification.candidate import Candidate
 from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
 from identification.engine_settings import SelectionSettings
+from identification.feature_space import sign_patterns
 from identification.metrics import loss as loss_fn
 from identification.model_file import INPUT_NAMES, complexity
 from identification.paired_loss import paired_loss_t
@@ -178,7 +178,7 @@ def rotor_patterns(expression: sympy.Expr, current: list[sympy.Expr]) -> list[li
             x, p = key
             cof = _cofactor(mono)
             groups.setdefault((cof, p), np.zeros(len(rotors)))[rotors.index(x)] += float(c)
-    patterns = [np.array((1, *rest), float) for rest in itertools.product((1, -1), repeat=len(rotors) - 1)]
+    patterns = [np.array(signs, float) for signs in sign_patterns(len(rotors))]
     total = patterns[0]  # the rotors' sum
     membership = {t: _group(t) for t in current}  # each term expanded once, not once per group
     out: list[list[sympy.Expr]] = []

@@ -187,6 +187,12 @@ def reaches_near(x: np.ndarray, near_spread: float) -> bool:
     return bool(x.min() <= near_spread * x.std())
 
 
+def sign_patterns(n: int) -> list[tuple[int, ...]]:
+    """The 2^(n-1) sign patterns of n summed members with the first one positive (the mixer's patterns for
+    four rotors: the sum first, then u1 + u2 + u3 - u4, ... in itertools.product order)."""
+    return [(1, *rest) for rest in itertools.product((1, -1), repeat=n - 1)]
+
+
 def grow_unary(
     primitives: Sequence[str],
     operators: Sequence[str],
@@ -219,7 +225,7 @@ def grow_unary(
             if u is None:
                 space._prune("sum of unlike units")
                 continue
-            patterns = [(1, *rest) for rest in itertools.product((1, -1), repeat=len(members) - 1)]
+            patterns = sign_patterns(len(members))
             patterns.sort(key=lambda s_: (min(s_) < 0, abs(sum(s_))))  # the sum, then the balanced ones
             for power, op in ((2, "sum2"), (1, "sum1")):
                 for signs in patterns:
