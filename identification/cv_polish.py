@@ -25,6 +25,7 @@ common part; the merged pair has the lower cross-validated loss and a VIF of 2.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -172,12 +173,15 @@ def rotor_patterns(expression: sympy.Expr, current: list[sympy.Expr]) -> list[li
     names = {x.name: x for x in expression.free_symbols if isinstance(x, sympy.Symbol)}
     rotors = [names.get(n, sympy.Symbol(n)) for n in INPUT_NAMES]
     groups: dict[tuple[sympy.Expr, int], np.ndarray] = {}
-    for mono, c in sympy.expand(expression).as_coefficients_dict().items():
-        key = _rotor_power(mono)
-        if key is not None:
-            x, p = key
-            cof = _cofactor(mono)
-            groups.setdefault((cof, p), np.zeros(len(rotors)))[rotors.index(x)] += float(c)
+    for coef, shape in _terms(expression):
+        if not _rotors(shape):
+            continue  # nothing of a rotor's: its expansion (a height law's can be long) adds no group
+        for mono, c in _expanded(shape):
+            key = _rotor_power(mono)
+            if key is not None:
+                x, p = key
+                cof = _cofactor(mono)
+                groups.setdefault((cof, p), np.zeros(len(rotors)))[rotors.index(x)] += float(coef * c)
     patterns = [np.array(signs, float) for signs in sign_patterns(len(rotors))]
     total = patterns[0]  # the rotors' sum
     membership = {t: _group(t) for t in current}  # each term expanded once, not once per group
@@ -199,6 +203,25 @@ def rotor_patterns(expression: sympy.Expr, current: list[sympy.Expr]) -> list[li
     return out
 
 
+def _terms(expression: sympy.Expr) -> list[tuple[sympy.Expr, sympy.Expr]]:
+    """(coefficient, shape) of each additive term of an expression, nested sums walked."""
+    out, stack = [], [expression]
+    while stack:
+        e = stack.pop()
+        if e.is_Add:
+            stack.extend(reversed(e.args))
+        else:
+            out.append(e.as_coeff_Mul())
+    return out
+
+
+@functools.lru_cache(maxsize=4096)
+def _expanded(shape: sympy.Expr) -> tuple[tuple[sympy.Expr, sympy.Expr], ...]:
+    """The monomials of a term's expansion with their coefficients (cached: the polish's rounds and targets
+    share terms, and expanding them was 2-3 % of a closed-loop fit's CPU)."""
+    return tuple(sympy.expand(shape).as_coefficients_dict().items())
+
+
 def _rotor_power(mono: sympy.Expr) -> tuple[sympy.Symbol, int] | None:
     """(the rotor speed, its power 1 or 2) of a monomial with one rotor speed, else None."""
     family = _rotors(mono)
@@ -209,11 +232,12 @@ def _rotor_power(mono: sympy.Expr) -> tuple[sympy.Symbol, int] | None:
     return (x, int(p)) if p in (1, 2) else None
 
 
+@functools.lru_cache(maxsize=4096)
 def _group(term: sympy.Expr) -> tuple[sympy.Expr, int] | None:
     """(cofactor, power) when every monomial of the term is one rotor speed at that power times that
     cofactor, else None."""
     keys = set()
-    for m in sympy.Add.make_args(sympy.expand(term)):
+    for m, _ in _expanded(term):
         k = _rotor_power(m)
         if k is None:
             return None
