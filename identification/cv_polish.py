@@ -11,7 +11,10 @@ identified on the fit and pick rows (SelectionSettings.identify_on_pick_rows), n
 simplest within tolerance of the best) picks again, until the pick stays (at most `rounds` times). The
 moves are fitted on the fit rows, as the engine's candidates.
 Beside every candidate's terms the moves may use `extra` terms: identify passes the engine's shape twins of
-the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins). On realistic-sensor
+the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins), and the features
+most correlated with the pick's cross-validated residual over the fit and pick rows
+(DiscoveryEngine.residual_features; SelectionSettings.cv_polish_residual): the engine screens on the fit rows
+alone, and a term only the pick rows excite is in none of its candidates. On realistic-sensor
 fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has the lower cross-validated
 loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in. More moves
 change the rotor speeds' family, in all terms at once and in each cofactor's terms (rotor_power_twins): on

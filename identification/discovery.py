@@ -373,8 +373,9 @@ class DiscoveryEngine:
             del candidates[n:]
         self.timings["sparse"] = time.perf_counter() - start - self.timings["grow"]
         self.stats["pool"] = len(pool)
-        # nearest_features' space, with Z's NaN-free copy when the rounds made one for this Z
-        self._final = (space, columns, Z, zf[1] if zf is not None and zf[0] is Z else None, X)
+        # nearest_features' and residual_features' space, with Z's NaN-free copy when the rounds made one
+        # for this Z, and the fit rows' columns as screened (F)
+        self._final = (space, columns, Z, zf[1] if zf is not None and zf[0] is Z else None, X, F)
         if best is not None and budget > 0:
             op_start = time.perf_counter()
             gp = self._operon(best, columns, X, y_point, Xh, yh, seed, loss, budget)
@@ -405,7 +406,7 @@ class DiscoveryEngine:
         final = getattr(self, "_final", None)
         if final is None or count < 1 or not shapes:
             return []
-        space, columns, Z, clean, X = final
+        space, columns, Z, clean, X, _ = final
         exprs = space.expressions[: Z.shape[1]]
         variables = [frozenset(map(str, e.free_symbols)) for e in exprs]
         M = _standardized(self._term_columns(list(shapes), columns, X))
@@ -423,6 +424,46 @@ class DiscoveryEngine:
             for i in near[:count]:
                 out.setdefault(exprs[i], None)
         return list(out)
+
+    def residual_features(self, parts: Sequence[tuple[np.ndarray, np.ndarray | None]], residual: np.ndarray,
+                          count: int, skip: Sequence[sympy.Expr] = ()) -> list[sympy.Expr]:
+        """The `count` features of the last fit's space most correlated (|correlation|) with `residual` over
+        the rows of `parts` ((X (N,16), the weak form's test functions (N',N) or None) each, stacked in that
+        order as residual's rows), no height feature and none of `skip`. The engine screens on the fit rows
+        alone: a term only the pick rows excite (a yaw coupling of a flight that yaws late) is in none of its
+        candidates, and the pick's cross-validated residual over both parts points at it (identification.
+        cv_polish). [] before a fit or with count < 1."""
+        final = getattr(self, "_final", None)
+        if final is None or count < 1 or not parts:
+            return []
+        space, columns, Z, _, fitted, F_fit = final
+        exprs = space.expressions[: Z.shape[1]]
+        index = np.arange(len(exprs))
+        r = np.asarray(residual, float)
+        weight = np.isfinite(r).astype(float)  # a row no fold holds out (in a gap) has no prediction
+        r = np.where(weight > 0.0, r, 0.0)
+        r = weight * (r - float(r @ weight) / max(float(weight.sum()), 1.0))
+        n, cross, sums, squares, start = float(weight.sum()), 0.0, 0.0, 0.0, 0
+        with np.errstate(all="ignore"):
+            for X, op in parts:  # sums over the parts' rows, no stacked copy of their columns
+                rows = len(X) if op is None else op.shape[0]
+                same = X is fitted or (X.shape == fitted.shape and np.array_equal(X, fitted))
+                if same and F_fit.shape == (rows, len(exprs)):
+                    F = F_fit  # the fit rows' columns, as the engine screened them
+                else:
+                    F = columns(X, index) if op is None else np.asarray(op @ columns(X, index))
+                w, rr = weight[start: start + rows], r[start: start + rows]
+                start += rows
+                cross = cross + rr @ F
+                sums = sums + w @ F
+                squares = squares + np.einsum("ij,ij,i->j", F, F, w)
+            variance = squares - sums * sums / max(n, 1.0)
+            corr = np.abs(cross) / np.sqrt(variance * float(r @ r))
+        corr[~np.isfinite(corr)] = -1.0
+        corr[space.height_features()[: len(corr)]] = -1.0
+        skipped = set(skip)
+        order = np.argsort(-corr, kind="stable")
+        return [exprs[i] for i in order if corr[i] > 0.0 and exprs[i] not in skipped][:count]
 
     def _law_due(self, best: Candidate | None, space: FeatureSpace, laws: int) -> bool:
         """Whether to fit a hub law now: fewer than hub_law_fits fitted, the flight reaches near the ground

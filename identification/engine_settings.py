@@ -254,6 +254,10 @@ class SelectionSettings:
     # engine's space most correlated with it on the fit rows (its shape twins: |wz| beside wz^2, which no
     # candidate may hold); 0: only the candidates' terms
     cv_polish_twins: int = 3
+    # and this many features of the engine's space most correlated with the pick's cross-validated residual
+    # over the fit and pick rows: the engine screens on the fit rows alone, so a term only the pick rows
+    # excite (a flight that yaws late: the yaw couplings) is in none of its candidates; 0: none
+    cv_polish_residual: int = 5
     # the chosen structure's refit (on the fit and pick rows) by generalised least squares where the rows
     # are weak and the log states its targets' raw noise (identification.weak_noise): the weak rows' noise
     # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate

@@ -308,6 +308,11 @@ def identify(
             twins = settings.selection.cv_polish_twins
             extra = eng.nearest_features(term_shapes(chosen.expression), twins) \
                 if twins > 0 and hasattr(eng, "nearest_features") else []
+            if settings.selection.cv_polish_residual > 0 and hasattr(eng, "residual_features"):
+                current = term_shapes(chosen.expression)
+                extra += eng.residual_features([(part[0], part[2]) for part in folded.parts],
+                                               folded.y - folded.predictions(current),
+                                               settings.selection.cv_polish_residual, [*current, *extra])
             chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
                                                 functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
                                                                   target=name), extra=extra)
