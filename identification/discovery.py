@@ -431,8 +431,8 @@ class DiscoveryEngine:
         the rows of `parts` ((X (N,16), the weak form's test functions (N',N) or None) each, stacked in that
         order as residual's rows), no height feature and none of `skip`. The engine screens on the fit rows
         alone: a term only the pick rows excite (a yaw coupling of a flight that yaws late) is in none of its
-        candidates, and the pick's cross-validated residual over both parts points at it (identification.
-        cv_polish). [] before a fit or with count < 1."""
+        candidates, and the pick's cross-validated residual over both parts points at it (cv_polish). []
+        before a fit or with count < 1."""
         final = getattr(self, "_final", None)
         if final is None or count < 1 or not parts:
             return []

@@ -51,8 +51,9 @@ def test_a_coupling_only_the_pick_flight_excites_is_found():
 
 
 def test_residual_features_rank_the_feature_the_residual_holds():
-    """On rows the engine never fitted, the feature the residual is made of ranks first; the terms passed
-    to skip and the height features are never proposed."""
+    """Over the fit rows and rows the engine never fitted, the feature the residual is made of ranks first;
+    the terms passed to skip are never proposed, nor the height features (the hub law stands for them),
+    even for a residual made of one."""
     rng = np.random.default_rng(4)
     xi, u = random_states(3000, 6)
     X = np.hstack([xi, u])
@@ -64,7 +65,9 @@ def test_residual_features_rank_the_feature_the_residual_holds():
     top = engine.residual_features(parts, residual, 3)
     assert top[0] == S["wy"] * S["wz"]
     assert S["wy"] * S["wz"] not in engine.residual_features(parts, residual, 3, skip=[S["wy"] * S["wz"]])
-    space = engine._final[0]
-    heights = [e for e, h in zip(space.expressions, space.height_features(), strict=False) if h]
-    assert not set(engine.residual_features(parts, residual, 50)) & set(heights)
     assert isinstance(top[0], sympy.Expr) and len(top) == 3
+    space = engine._final[0]
+    heights = {e for e, h in zip(space.expressions, space.height_features(), strict=False) if h}
+    assert S["h"] ** 2 in heights
+    of_height = 0.5 * X[:, 2] ** 2 + 0.01 * rng.standard_normal(len(X))  # h^2 (h = -z, m)
+    assert not set(engine.residual_features(parts, of_height, 10)) & heights
