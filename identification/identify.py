@@ -305,11 +305,10 @@ def identify(
         scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
         chosen = select(candidates, settings.selection, scale=scale)
         if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
-            twins = settings.selection.cv_polish_twins
-            extra = eng.nearest_features(term_shapes(chosen.expression), twins) \
-                if twins > 0 and hasattr(eng, "nearest_features") else []
+            twins, current = settings.selection.cv_polish_twins, term_shapes(chosen.expression)
+            extra = eng.nearest_features(current, twins) if twins > 0 and hasattr(eng, "nearest_features") \
+                else []
             if settings.selection.cv_polish_residual > 0 and hasattr(eng, "residual_features"):
-                current = term_shapes(chosen.expression)
                 extra += eng.residual_features([(part[0], part[2]) for part in folded.parts],
                                                folded.y - folded.predictions(current),
                                                settings.selection.cv_polish_residual, [*current, *extra])
