@@ -58,8 +58,9 @@ on it, and are validated on the other flight; train on one flight, validate on a
 --own-validation-block ours keeps the training flight's last fifth to validate on instead (identify's
 default roles for one flight), so it fits and picks on fewer rows; the true terms the whole flight pins down
 but those rows (fit_and_pick_rows) do not are then listed per case in the results md, and are still counted
-missing when left out and held to the coefficient floor. Sensor cases: the reference adds the
-accelerometer's bias as the constants of fx fy fz (it is in the data), the targets add the vehicle's
+missing when left out and held to the coefficient floor. Sensor cases: the body-frame reference is the
+law of what the sensors measure (sensor_reference): the accelerometer's bias as the constants of fx fy fz
+and the physics in the gyro's biased rates (both are in the data), the targets add the vehicle's
 gravity (the g its accelerometer measures against), and every engine's model is scored in the weak form on
 the validation flight's raw sensor targets ("(weak)" in the table), so ours and the baselines are judged
 alike.
@@ -103,7 +104,7 @@ from identification.body_frame import (  # noqa: E402
     primitive_matrix,
     to_variables,
 )
-from identification.collinearity import term_t_ratios  # noqa: E402
+from identification.collinearity import offset_t_ratio, term_t_ratios  # noqa: E402
 from identification.data_roles import assign_roles  # noqa: E402
 from identification.dataset import Dataset, load_dataset  # noqa: E402
 from identification.effects_physics import Effects, body_expressions, flight_rows  # noqa: E402
@@ -455,7 +456,8 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
     it) on every true term and a constant, and the terms whose t ratio (identification.collinearity, its
     effective rows AR(1) on point rows, summed over the test functions' overlap on weak rows:
     effective_rows; under the stated noise on weak rows whose log states it and stated_noise, as identify's
-    pick does) is below min_t, the t the engine's pick demands of its own terms. Those terms are listed
+    pick does) is below min_t, the t the engine's pick demands of its own terms; a true constant (a
+    sensor's bias) by its t as the fit's offset (offset_t_ratio). Those terms are listed
     apart and neither counted missing nor held to the coefficient floor. height_law: a ground effect's
     height-dependent part per target (height_law_reference), no monomial, so body_reference holds the
     vehicle's no-ground terms only; it is part of the true structure, one more column (with its own
@@ -467,7 +469,8 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
     Y = body_targets(train.xi, train.targets, gravity)
     out: dict[str, list[str]] = {}
     for j, target in enumerate(BODY_TARGET_NAMES):
-        terms = [k for k in expression_terms(body_reference[target]) if k != 1]
+        reference = expression_terms(body_reference[target])
+        terms = [k for k in reference if k != 1]
         if not terms:
             continue
         fn = sympy.lambdify([PRIMITIVE_SYMBOLS[n] for n in names], terms, modules="numpy")
@@ -492,6 +495,9 @@ def unidentifiable_terms(body_reference: dict[str, sympy.Expr], train: Dataset, 
             continue
         out[target] = [expression_to_string(k) for k, tk in zip(terms, t[1 : 1 + len(terms)], strict=True)
                        if not tk >= min_t]
+        # the constant is a column of every fit; a true one (a sensor's bias) is asked the same t
+        if 1 in reference and not offset_t_ratio(cols[:, 1:], y, lag, noise) >= min_t:
+            out[target].insert(0, "1")
     return out
 
 
@@ -605,7 +611,7 @@ def case_data(case: Case, args: argparse.Namespace, out: Path):
         vehicle = flown_vehicle(case)
         train, val, tlogs = sitl_flights(case, out, args.seed, args.train_duration, vehicle.gravity,
                                          args.reuse_flights)
-        body = with_accel_bias(case, vehicle, true_body_expressions(vehicle))
+        body = sensor_reference(case, vehicle, true_body_expressions(vehicle))
         return train, val, true_model(vehicle), body, vehicle.gravity, tlogs
     train = synthetic(case, args.rows, args.seed)
     val = synthetic(case, args.rows // 2, args.seed + 1000)
@@ -613,14 +619,19 @@ def case_data(case: Case, args: argparse.Namespace, out: Path):
             load_vehicle(VEHICLE).gravity, [])
 
 
-def with_accel_bias(case: Case, vehicle, body: dict[str, sympy.Expr]) -> dict[str, sympy.Expr]:
-    """Body-frame reference expressions with, on a sensor case, the accelerometer's bias (m/s^2, FRD) as the
-    constants of fx fy fz: it is in the measured specific force."""
+def sensor_reference(case: Case, vehicle, body: dict[str, sympy.Expr]) -> dict[str, sympy.Expr]:
+    """Body-frame reference expressions as the law of what a sensor case measures: the rates a model reads
+    are the gyro's (rad/s, FRD), w_true + b_g, so every w in the physics is w - b_g (the inertia coupling
+    -0.70 wy wz of fang-chen-aero's wx' holds -0.70 (-b_gy) wz = -1.05e-3 wz: a bare rate term that is in
+    the data); and the measured specific force holds the accelerometer's bias (m/s^2, FRD) as the constants
+    of fx fy fz. The identical expressions on a truth case."""
     if case.targets != "sensors":
         return body
-    bias = vehicle.with_overrides(sensors=case.sensors).sensors.effective().accel.bias
-    return {n: e + (sympy.Float(b) if n in ("fx", "fy", "fz") else 0) for n, e, b in
-            zip(body, body.values(), (*bias, 0.0, 0.0, 0.0), strict=True)}
+    imu = vehicle.with_overrides(sensors=case.sensors).sensors.effective()
+    shift = {PRIMITIVE_SYMBOLS[n]: PRIMITIVE_SYMBOLS[n] - float(b)
+             for n, b in zip(("wx", "wy", "wz"), imu.gyro.bias, strict=True) if b != 0.0}
+    return {n: e.xreplace(shift) + (sympy.Float(b) if n in ("fx", "fy", "fz") else 0) for n, e, b in
+            zip(body, body.values(), (*imu.accel.bias, 0.0, 0.0, 0.0), strict=True)}
 
 
 def height_law_reference(case: Case) -> tuple[dict[str, sympy.Expr], dict[str, sympy.Expr]] | None:
@@ -632,10 +643,11 @@ def height_law_reference(case: Case) -> tuple[dict[str, sympy.Expr], dict[str, s
     vehicle = flown_vehicle(case)
     if vehicle.ground != "plane" or vehicle.aero.ground_effect is None:
         return None
-    full = true_body_expressions(vehicle)
-    far = true_body_expressions(vehicle.with_overrides(ground="none"))
-    # the rest keeps a sensor case's accelerometer bias (case_data's reference has it too)
-    return with_accel_bias(case, vehicle, far), {n: full[n] - far[n] for n in full}  # fx fy dwz: exactly 0
+    # both as a sensor case measures them (case_data's reference too): the rest keeps the accelerometer's
+    # bias, and the law reads the gyro's rates (the hubs' airspeed)
+    full = sensor_reference(case, vehicle, true_body_expressions(vehicle))
+    far = sensor_reference(case, vehicle, true_body_expressions(vehicle.with_overrides(ground="none")))
+    return far, {n: full[n] - far[n] for n in full}  # fx fy dwz: exactly 0
 
 
 def case_floors(case: Case, case_rows: list[Row], train_duration: float) -> list[tuple[str, bool]]:

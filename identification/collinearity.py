@@ -375,6 +375,37 @@ def term_t_ratios(
     return full_t, full_vif
 
 
+def offset_t_ratio(
+    columns: np.ndarray, y: np.ndarray, max_lag: int | None = None, noise: Whitener | None = None
+) -> float:
+    """The t ratio |c_0| / se_0 of the constant offset c_0 fitted beside the varying columns (N, k) to y (N,),
+    under term_t_ratios' noise model (the residual's RMS over the effective rows, or the weak rows' stated
+    noise): how far the flight tells a constant (a sensor's bias) from zero given the terms beside it. A
+    term whose sum over the rows barely varies (four rotors' u_i^2 in a hover) takes the offset's place, and
+    its t falls. 0 with fewer rows than columns; inf for an exact fit with a nonzero offset."""
+    a = np.asarray(columns, dtype=float).reshape(len(y), -1)
+    y = np.asarray(y, dtype=float)
+    ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
+    a, y = a[ok], y[ok]
+    if len(y) <= a.shape[1] + 1:
+        return 0.0
+    scale = np.sqrt(np.mean(a * a, axis=0))
+    scale[~(scale > 0)] = 1.0
+    design = np.hstack([np.ones((len(y), 1)), a / scale])
+    pinv = np.linalg.pinv(design)
+    c = pinv @ y
+    resid = y - design @ c
+    s2 = float(resid @ resid) / (len(y) - design.shape[1])
+    if s2 == 0.0:
+        return float("inf") if c[0] != 0.0 else 0.0
+    if noise is not None and noise.rows == len(ok) and ok.all():
+        white = noise.apply(resid)
+        var = estimate_covariance(pinv[:1], [noise], float(white @ white) / (len(y) - design.shape[1]))[0, 0]
+    else:  # least squares' variance, the rows counted as their effective number
+        var = s2 * float(pinv[0] @ pinv[0]) * len(y) / effective_rows(resid, max_lag)
+    return float(abs(c[0]) / np.sqrt(var)) if var > 0 else float("inf")
+
+
 def describe(target: str, c: Collinearity) -> list[str]:
     """Terminal lines: which terms of a target are not identifiable from this flight and what would help."""
     bad = c.unidentifiable

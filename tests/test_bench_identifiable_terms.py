@@ -60,3 +60,19 @@ def test_the_fit_and_pick_rows_leave_out_identifys_validation_block():
     fewer = discovery.unidentifiable_terms(body, discovery.fit_and_pick_rows(train), 9.8, weak=False)
     assert "wx" not in whole["dwx"] and "wx" in fewer["dwx"]  # t 5.5+ on the flight, under 4.8 on 3/4 of it
     assert all(set(whole[n]) <= set(fewer[n]) for n in body)
+
+
+def test_a_true_constant_is_asked_its_t_as_the_other_terms():
+    """A sensor's bias is a constant of the reference (bench/discovery.py sensor_reference); one below the
+    noise is listed as not identifiable, as any term, one well above it is not."""
+    case = discovery.Case("paper vehicle")
+    body = discovery.body_expressions(discovery.VEHICLE, case.effects)
+    wz = discovery.PRIMITIVE_SYMBOLS["wz"]
+    rng = np.random.default_rng(7)
+    listed = {}
+    for offset in (1e-4, 0.5):  # rad/s^2 on wz' = -0.2 wz + offset, beside 1 rad/s^2 of noise, 2000 rows
+        train = discovery.synthetic(case, 2000, seed=4)
+        train.targets[:, 5] = -0.2 * train.xi[:, 11] + offset + 1.0 * rng.standard_normal(len(train))
+        reference = {**body, "dwz": -0.2 * wz + offset}
+        listed[offset] = discovery.unidentifiable_terms(reference, train, 9.8, weak=False)["dwz"]
+    assert listed[1e-4] == ["1"] and listed[0.5] == []

@@ -152,3 +152,19 @@ def test_the_pick_measures_only_the_candidates_its_answer_depends_on():
     assert 0 < len(calls) < 50 and len(set(calls)) == len(calls)  # each measured at most once
     select(lazy, settings)
     assert len(set(calls)) == len(calls)
+
+
+def test_offset_t_ratio_measures_a_constant_beside_the_terms():
+    """A constant offset's t: its size over its standard error on white noise, and small where a term that
+    barely varies can stand for it (a hover's rotor speeds for an accelerometer's bias)."""
+    from identification.collinearity import offset_t_ratio
+
+    rng = np.random.default_rng(3)
+    n = 10_000
+    x = rng.standard_normal(n)
+    y = 0.1 + 2.0 * x + rng.standard_normal(n)  # se of the offset 1/sqrt(n) = 0.01: t ~ 10
+    assert 7.0 < offset_t_ratio(x[:, None], y) < 13.0
+    near_constant = 5.0 + 1e-3 * rng.standard_normal(n)
+    y2 = 0.1 + 2.0 * near_constant + rng.standard_normal(n)
+    assert offset_t_ratio(near_constant[:, None], y2) < SelectionSettings().min_t  # se ~50: chance level
+    assert offset_t_ratio(x[:, None], 0.1 + 2.0 * x) > 1e9  # exact but for rounding
