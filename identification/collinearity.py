@@ -380,9 +380,9 @@ def offset_t_ratio(
 ) -> float:
     """The t ratio |c_0| / se_0 of the constant offset c_0 fitted beside the varying columns (N, k) to y (N,),
     under term_t_ratios' noise model (the residual's RMS over the effective rows, or the weak rows' stated
-    noise): how far the flight tells a constant (a sensor's bias) from zero given the terms beside it. A
-    term whose sum over the rows barely varies (four rotors' u_i^2 in a hover) takes the offset's place, and
-    its t falls. 0 with fewer rows than columns; inf for an exact fit with a nonzero offset."""
+    noise): how far the flight tells a constant (a sensor's bias) from zero given the terms beside it. Terms
+    whose sum barely varies over the rows (four rotors' u_i^2 in a hover) can stand for the offset, and its t
+    falls. 0 with fewer rows than columns; inf for an exact fit with a nonzero offset."""
     a = np.asarray(columns, dtype=float).reshape(len(y), -1)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
