@@ -31,7 +31,7 @@ import numpy as np
 import sympy
 
 from identification.model_file import SYMBOLS, VARIABLE_NAMES, expression_to_string
-from identification.weak_noise import Whitener, estimate_covariance
+from identification.weak_noise import Whitener, column_scale, estimate_covariance
 
 VIF_LIMIT = 10.0
 CONFOUNDER_VIF_LIMIT = 100.0
@@ -389,9 +389,7 @@ def offset_t_ratio(
     a, y = a[ok], y[ok]
     if len(y) <= a.shape[1] + 1:
         return 0.0
-    scale = np.sqrt(np.mean(a * a, axis=0))
-    scale[~(scale > 0)] = 1.0
-    design = np.hstack([np.ones((len(y), 1)), a / scale])
+    design = np.hstack([np.ones((len(y), 1)), a / column_scale(a)])
     pinv = np.linalg.pinv(design)
     c = pinv @ y
     resid = y - design @ c

@@ -176,7 +176,7 @@ def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> 
     columns do not determine every coefficient."""
     a = np.vstack([p[0] for p in parts])
     y = np.concatenate([p[1] for p in parts])
-    scale = _column_scale(a)
+    scale = column_scale(a)
     k = a.shape[1]
     aw = np.vstack([w.apply(ai) for ai, _, w in parts]) / scale
     yw = np.concatenate([w.apply(yi) for _, yi, w in parts])
@@ -214,7 +214,7 @@ def estimate_covariance(weights: np.ndarray, whiteners: list[Whitener], s2: floa
     return out
 
 
-def _column_scale(a: np.ndarray) -> np.ndarray:
+def column_scale(a: np.ndarray) -> np.ndarray:
     """Each column's RMS (1 for a zero column): least squares well scaled whatever the terms' units."""
     scale = np.sqrt(np.mean(a * a, axis=0))
     scale[~(scale > 0)] = 1.0

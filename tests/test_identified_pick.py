@@ -7,7 +7,7 @@ import pytest
 import sympy
 
 from identification.candidate import Candidate
-from identification.collinearity import term_identification, term_t_ratios, weakest_t
+from identification.collinearity import offset_t_ratio, term_identification, term_t_ratios, weakest_t
 from identification.engine_settings import SelectionSettings
 from identification.pareto import select
 from identification.weak_noise import Whitener
@@ -157,8 +157,6 @@ def test_the_pick_measures_only_the_candidates_its_answer_depends_on():
 def test_offset_t_ratio_measures_a_constant_beside_the_terms():
     """A constant offset's t: its size over its standard error on white noise, and small where a term that
     barely varies can stand for it (a hover's rotor speeds for an accelerometer's bias)."""
-    from identification.collinearity import offset_t_ratio
-
     rng = np.random.default_rng(3)
     n = 10_000
     x = rng.standard_normal(n)
