@@ -60,7 +60,8 @@ default roles for one flight), so it fits and picks on fewer rows; the true term
 but those rows (fit_and_pick_rows) do not are then listed per case in the results md, and are still counted
 missing when left out and held to the coefficient floor. Sensor cases: the body-frame reference is the
 law of what the sensors measure (sensor_reference): the accelerometer's bias as the constants of fx fy fz
-and the physics in the gyro's biased rates (both are in the data), the targets add the vehicle's
+(it is in the data; the gyro's is not: the rates a model reads are the log's true ones, and the angular
+accelerations the gyro's differences, where its bias cancels), the targets add the vehicle's
 gravity (the g its accelerometer measures against), and every engine's model is scored in the weak form on
 the validation flight's raw sensor targets ("(weak)" in the table), so ours and the baselines are judged
 alike.
@@ -696,18 +697,17 @@ def case_data(case: Case, args: argparse.Namespace, out: Path):
 
 
 def sensor_reference(case: Case, vehicle, body: dict[str, sympy.Expr]) -> dict[str, sympy.Expr]:
-    """Body-frame reference expressions as the law of what a sensor case measures: the rates a model reads
-    are the gyro's (rad/s, FRD), w_true + b_g, so every w in the physics is w - b_g (the inertia coupling
-    -0.70 wy wz of fang-chen-aero's wx' holds -0.70 (-b_gy) wz = -1.05e-3 wz: a bare rate term that is in
-    the data); and the measured specific force holds the accelerometer's bias (m/s^2, FRD) as the constants
-    of fx fy fz. The identical expressions on a truth case."""
+    """Body-frame reference expressions as the law of what a sensor case measures: the measured specific
+    force holds the accelerometer's bias (m/s^2, FRD) as the constants of fx fy fz. The gyro's bias is in
+    none of the data: the rates a model reads are the log's state (HIL_STATE_QUATERNION's, the true rates;
+    identification.readers.tlog), and the angular-acceleration targets are the gyro's differences over a
+    step, where a constant bias cancels (tests/test_bench_reference.py flies one and checks both). The
+    identical expressions on a truth case."""
     if case.targets != "sensors":
         return body
-    imu = vehicle.with_overrides(sensors=case.sensors).sensors.effective()
-    shift = {PRIMITIVE_SYMBOLS[n]: PRIMITIVE_SYMBOLS[n] - float(b)
-             for n, b in zip(("wx", "wy", "wz"), imu.gyro.bias, strict=True) if b != 0.0}
-    return {n: e.xreplace(shift) + (sympy.Float(b) if n in ("fx", "fy", "fz") else 0) for n, e, b in
-            zip(body, body.values(), (*imu.accel.bias, 0.0, 0.0, 0.0), strict=True)}
+    bias = vehicle.with_overrides(sensors=case.sensors).sensors.effective().accel.bias
+    return {n: e + (sympy.Float(b) if n in ("fx", "fy", "fz") else 0) for n, e, b in
+            zip(body, body.values(), (*bias, 0.0, 0.0, 0.0), strict=True)}
 
 
 def height_law_reference(case: Case) -> tuple[dict[str, sympy.Expr], dict[str, sympy.Expr]] | None:
@@ -720,7 +720,7 @@ def height_law_reference(case: Case) -> tuple[dict[str, sympy.Expr], dict[str, s
     if vehicle.ground != "plane" or vehicle.aero.ground_effect is None:
         return None
     # both as a sensor case measures them (case_data's reference too): the rest keeps the accelerometer's
-    # bias, and the law reads the gyro's rates (the hubs' airspeed)
+    # bias, the law has none
     full = sensor_reference(case, vehicle, true_body_expressions(vehicle))
     far = sensor_reference(case, vehicle, true_body_expressions(vehicle.with_overrides(ground="none")))
     return far, {n: full[n] - far[n] for n in full}  # fx fy dwz: exactly 0
