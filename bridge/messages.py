@@ -6,6 +6,10 @@ and velocity NED m and m/s, quaternion scalar-first body-to-NED, Euler ZYX rad, 
 Rotor speeds travel as RAW_RPM (id 339), one frame per rotor, index 0..3 = motors 1..4 in PX4 order,
 frequency in rpm (float). pymavlink 2.4.50's common dialect has no ESC_STATUS, and RAW_RPM is the common
 message for it; it carries no time, so it belongs to the step of the datagram it arrives in.
+
+The SITL's true accelerations at each step's state travel as DEBUG_FLOAT_ARRAY (id 350) named TRUE_ACC:
+data[0..2] the linear acceleration NED m/s^2, data[3..5] the body angular acceleration FRD rad/s^2 (common
+has no message for an angular acceleration). A log's truth targets are then exact, not differentiated.
 """
 
 from __future__ import annotations
@@ -36,6 +40,10 @@ PRESSURE_ALT_BIT = 0x800
 TEMPERATURE_BIT = 0x1000
 BARO_BITS = ABS_PRESSURE_BIT | PRESSURE_ALT_BIT | TEMPERATURE_BIT  # 0x1A00
 
+# DEBUG_FLOAT_ARRAY of the SITL's true accelerations (see the module docstring).
+TRUE_ACCELERATIONS_NAME = "TRUE_ACC"
+_TRUE_ACCELERATIONS_WIRE = TRUE_ACCELERATIONS_NAME.encode("ascii")
+
 # HIL_ACTUATOR_CONTROLS as PX4 sends it when armed.
 ARMED_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 LOCKSTEP_FLAG = 0x1
@@ -47,6 +55,7 @@ RawRpm = mavlink.MAVLink_raw_rpm_message
 HilGps = mavlink.MAVLink_hil_gps_message
 WindCov = mavlink.MAVLink_wind_cov_message
 HilActuatorControls = mavlink.MAVLink_hil_actuator_controls_message
+DebugFloatArray = mavlink.MAVLink_debug_float_array_message
 Heartbeat = mavlink.MAVLink_heartbeat_message
 
 _ZERO3 = (0.0, 0.0, 0.0)
@@ -196,6 +205,8 @@ class Observation:
     gps: GpsSample | None = None
     extras: list = field(default_factory=list)  # other messages that came with this step (e.g. STATUSTEXT)
     wind: np.ndarray | None = None  # true wind over the coming step, NED m/s (WIND_COV; None: no wind flown)
+    # true accelerations at this step's state (TRUE_ACC): NED m/s^2 (3), then body FRD rad/s^2 (3)
+    accelerations: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -356,6 +367,14 @@ def encode_hil_actuator_controls(*args: object, lockstep: bool = True) -> HilAct
     return _make_hac(int(time_usec), controls, ARMED_MODE, LOCKSTEP_FLAG if lockstep else 0)
 
 
+def encode_true_accelerations(
+    time_usec: int, accel_ned: Sequence[float], angular_accel_frd: Sequence[float]
+) -> DebugFloatArray:
+    """DEBUG_FLOAT_ARRAY TRUE_ACC: the true acceleration NED m/s^2 and angular acceleration FRD rad/s^2."""
+    data = [float(v) for v in (*accel_ned, *angular_accel_frd)] + [0.0] * 52
+    return DebugFloatArray(int(time_usec), TRUE_ACCELERATIONS_NAME.encode("ascii"), 0, data)
+
+
 def encode_heartbeat(*args: object) -> Heartbeat:
     """HEARTBEAT of a PX4 quadrotor (the companion's, and the SITL's ground-link heartbeat): armed, active."""
     _strip_mav(args)
@@ -396,6 +415,7 @@ ID_LOCAL_POSITION_NED = LocalPositionNed.id
 ID_RAW_RPM = RawRpm.id
 ID_HIL_GPS = HilGps.id
 ID_WIND_COV = WindCov.id
+ID_DEBUG_FLOAT_ARRAY = DebugFloatArray.id
 _array = np.array
 
 
@@ -490,9 +510,10 @@ _STEP_IDS = frozenset(_STEP_CLASSES.values())
 class ObservationAssembler:
     """Collects the frames of one SITL step and returns an Observation when its HIL_SENSOR arrives.
 
-    HIL_STATE_QUATERNION, LOCAL_POSITION_NED, HIL_GPS and WIND_COV are matched to the HIL_SENSOR by time;
-    RAW_RPM (no time field) by arriving after the step's HIL_STATE_QUATERNION. Other messages go to
-    Observation.extras. Takes pymavlink messages (add/feed) or checked raw frames (add_frame/feed_frames).
+    HIL_STATE_QUATERNION, LOCAL_POSITION_NED, HIL_GPS, WIND_COV and the TRUE_ACC DEBUG_FLOAT_ARRAY are
+    matched to the HIL_SENSOR by time; RAW_RPM (no time field) by arriving after the step's
+    HIL_STATE_QUATERNION. Other messages (any other DEBUG_FLOAT_ARRAY too) go to Observation.extras. Takes
+    pymavlink messages (add/feed) or checked raw frames (add_frame/feed_frames).
     """
 
     def __init__(self) -> None:
@@ -503,6 +524,7 @@ class ObservationAssembler:
         self._lpn: tuple | None = None
         self._gps: tuple | None = None
         self._wind: tuple | None = None
+        self._acc: tuple | None = None
         self._rpm: list[tuple] = []
         self._extras: list = []
 
@@ -511,7 +533,10 @@ class ObservationAssembler:
         cls = type(msg)
         msg_id = _STEP_CLASSES.get(cls)
         if msg_id is None:
-            self._extras.append(msg)
+            if cls is DebugFloatArray and _is_true_accelerations(msg.name):
+                self._acc = (msg.time_usec, *msg.data[:6])
+            else:
+                self._extras.append(msg)
             return None
         return self._add_values(msg_id, _values_of[cls](msg))
 
@@ -536,6 +561,11 @@ class ObservationAssembler:
         step_ids = _STEP_IDS
         for spec, frame, header_len, signature_len in frames:
             msg_id = spec.msg_id
+            if msg_id == ID_DEBUG_FLOAT_ARRAY:
+                v = unpack_frame(frame, header_len, signature_len, spec)
+                if _is_true_accelerations(v[2]):
+                    self._acc = (v[0], *v[3:9])
+                    continue
             if msg_id not in step_ids:
                 try:
                     self._extras.append(decode_frame(frame, header_len, signature_len, spec))
@@ -591,6 +621,7 @@ class ObservationAssembler:
         if gps is not None and gps[0] != tu:
             gps = None
         wind = self._wind
+        acc = self._acc
         obs = Observation(
             tu,
             tu * 1e-6,
@@ -600,6 +631,14 @@ class ObservationAssembler:
             gps_from_values(gps) if gps is not None else None,
             self._extras,
             _array(wind[1:4]) if wind is not None and wind[0] == tu else None,
+            _array(acc[1:7]) if acc is not None and acc[0] == tu else None,
         )
         self._reset()
         return obs
+
+
+def _is_true_accelerations(name: str | bytes) -> bool:
+    """True for the name of the SITL's TRUE_ACC array (as pymavlink decodes it, or as wire bytes)."""
+    if isinstance(name, bytes):
+        return name.rstrip(b"\0") == _TRUE_ACCELERATIONS_WIRE
+    return name == TRUE_ACCELERATIONS_NAME

@@ -369,6 +369,21 @@ class Quadrotor:
         d = self._derivative(self._s, self._cmd)
         return d[10], d[11], d[12]
 
+    def accelerations(self) -> tuple[float, float, float, float, float, float]:
+        """(acceleration NED m/s^2, body angular acceleration FRD rad/s^2) at the current state, 6 floats.
+
+        The derivative specific_force_body computed this step is reused; zeros while resting on the ground.
+        """
+        if self._on_ground:
+            return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        s = self._s
+        cached = self._specific_force_at == (self._time_usec, id(s))
+        if not self._paper and self._slope is not None and cached:
+            d = self._slope
+        else:
+            d = self._derivative(s, self._cmd)
+        return d[3], d[4], d[5], d[10], d[11], d[12]
+
     def specific_force_body(self) -> tuple[float, float, float]:
         """What an ideal accelerometer measures, FRD m/s^2: R^T (a - g e3); (0, 0, -g) at rest, level.
 

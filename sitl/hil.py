@@ -3,7 +3,8 @@
 Per step, in this order: HIL_STATE_QUATERNION (true state), LOCAL_POSITION_NED (precise true position and
 velocity), RAW_RPM x4 (true rotor speeds after the motor lag, rpm, index 0..3 = motors 1..4 in PX4 order;
 pymavlink's common dialect has no ESC_STATUS), HIL_GPS on GPS steps (10 Hz), WIND_COV when the vehicle flies
-in wind (the true wind over the coming step, NED m/s), HIL_SENSOR last. All carry the
+in wind (the true wind over the coming step, NED m/s), DEBUG_FLOAT_ARRAY TRUE_ACC (the true accelerations at
+the step's state: NED m/s^2, FRD rad/s^2; bridge.messages), HIL_SENSOR last. All carry the
 step's time_usec (LOCAL_POSITION_NED: time_boot_ms = time_usec // 1000).
 
 The frames are packed here straight from floats with precompiled structs: building pymavlink message objects
@@ -34,6 +35,7 @@ _RPM = mavlink.MAVLink_raw_rpm_message
 _GPS = mavlink.MAVLink_hil_gps_message
 _SENSOR = mavlink.MAVLink_hil_sensor_message
 _WIND = mavlink.MAVLink_wind_cov_message
+_ACC = mavlink.MAVLink_debug_float_array_message
 for _cls, _order in (
     (_HSQ, "time_usec attitude_quaternion rollspeed pitchspeed yawspeed lat lon alt vx vy vz ind_airspeed "
            "true_airspeed xacc yacc zacc"),
@@ -43,6 +45,7 @@ for _cls, _order in (
     (_SENSOR, "time_usec xacc yacc zacc xgyro ygyro zgyro xmag ymag zmag abs_pressure diff_pressure "
               "pressure_alt temperature fields_updated id"),
     (_WIND, "time_usec wind_x wind_y wind_z var_horiz var_vert wind_alt horiz_accuracy vert_accuracy"),
+    (_ACC, "time_usec array_id name data"),
 ):
     # The payload tuples below are written in these wire orders; fail loudly if pymavlink ever differs.
     if list(_cls.ordered_fieldnames) != _order.split():
@@ -53,6 +56,8 @@ ACCEL_LIMIT = messages.ACCEL_LIMIT
 GYRO_LIMIT = messages.GYRO_LIMIT
 MG_PER_M_S2 = 1000.0 / messages.G0
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+TRUE_ACC_NAME = messages.TRUE_ACCELERATIONS_NAME.encode("ascii")
+_ACC_PADDING = (0.0,) * 52  # DEBUG_FLOAT_ARRAY's data[58] past our six values
 LAT_E7_MAX, LON_E7_MAX = 900_000_000, 1_800_000_000  # degE7
 
 
@@ -100,8 +105,8 @@ class HilEncoder:
         self.frame = LocalFrame.at(home)
         self.link = link
         self._frames = Framer(link.system_id, link.component_id, link, link.signing).frames
-        kinds = map(kind, (_HSQ, _LPN, _RPM, _GPS, _SENSOR, _WIND))
-        self._hsq, self._lpn, self._rpm, self._gps, self._sensor, self._wind = kinds
+        kinds = map(kind, (_HSQ, _LPN, _RPM, _GPS, _SENSOR, _WIND, _ACC))
+        self._hsq, self._lpn, self._rpm, self._gps, self._sensor, self._wind, self._acc = kinds
 
     def step_frames(self, quad: Quadrotor, s: SensorFrame) -> list[bytes]:
         """The frames of the current step, HIL_SENSOR last; all stamped with the step's time_usec."""
@@ -146,6 +151,8 @@ class HilEncoder:
             msg_id, extra, pack = self._wind
             var_h, var_v = wind.variance
             parts.append((msg_id, extra, pack(t, wn, we, wd, var_h, var_v, alt, 0.0, 0.0)))
+        msg_id, extra, pack = self._acc
+        parts.append((msg_id, extra, pack(t, 0, TRUE_ACC_NAME, *quad.accelerations(), *_ACC_PADDING)))
         ax, ay, az = s.accel
         gx, gy, gz = s.gyro
         mx, my, mz = s.mag
@@ -184,6 +191,8 @@ def reference_messages(quad: Quadrotor, s: SensorFrame, home: HomeConfig) -> lis
             messages.GpsSample(t, g.lat, g.lon, g.alt, g.vel, g.fix_type, g.satellites, g.eph, g.epv)))
     if quad.wind_model is not None:
         out.append(wind_cov(t, quad.wind, quad.wind_model.variance, alt))
+    acc = quad.accelerations()
+    out.append(messages.encode_true_accelerations(t, acc[:3], acc[3:]))
     out.append(messages.encode_hil_sensor(messages.ImuSample(
         t, s.accel, s.gyro, s.mag, s.abs_pressure, s.pressure_alt, s.temperature, s.fields_updated)))
     return out

@@ -221,6 +221,25 @@ def test_observation_wind_is_the_wind_cov_of_its_own_step_from_frames_and_from_m
         assert all(not o.extras for o in obs)  # WIND_COV is part of the step, not an extra
 
 
+def test_true_accelerations_belong_to_their_step_and_other_arrays_are_extras():
+    """TRUE_ACC (DEBUG_FLOAT_ARRAY) of a step gives Observation.accelerations (NED m/s^2, FRD rad/s^2) from
+    messages and from raw frames alike; one of another step is not taken, and a foreign array (another
+    name) is an extra, not accelerations."""
+    acc = M.encode_true_accelerations(8000, (0.5, -0.25, 9.75), (1.5, -2.0, 0.125))
+    stale = M.encode_true_accelerations(4000, (7.0, 7.0, 7.0), (7.0, 7.0, 7.0))
+    foreign = mavlink.MAVLink_debug_float_array_message(12000, b"OTHER", 0, [3.0] * 58)
+    msgs = _wire(*_step(4000), *_step(8000)[:-1], acc, _step(8000)[-1],
+                 *_step(12000)[:-1], stale, foreign, _step(12000)[-1])
+    data = b"".join(pack_frame(m, i, 1, 51) for i, m in enumerate(msgs))
+    checked = split_datagram(data, LinkStats())
+    for obs in (M.ObservationAssembler().feed(msgs), M.ObservationAssembler().feed_frames(checked)):
+        assert [o.time_usec for o in obs] == [4000, 8000, 12000]
+        assert obs[0].accelerations is None and obs[2].accelerations is None
+        np.testing.assert_array_equal(obs[1].accelerations, [0.5, -0.25, 9.75, 1.5, -2.0, 0.125])
+        assert not obs[1].extras
+        assert [(m.get_type(), m.name) for m in obs[2].extras] == [("DEBUG_FLOAT_ARRAY", "OTHER")]
+
+
 def test_observation_assembler_does_not_mix_steps():
     asm = M.ObservationAssembler()
     old = _wire(*_step(4000))

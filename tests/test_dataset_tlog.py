@@ -16,6 +16,8 @@ from bridge.errors import UserError
 from bridge.tlog import read_tlog
 from identification.dataset import INPUT_NAMES, STATE_NAMES, TARGET_NAMES, Dataset, load_dataset
 from identification.excite import fly
+from identification.readers.tlog import read_tlog_dataset
+from identification.segmentation import segment
 
 
 @pytest.fixture(scope="module")
@@ -32,16 +34,31 @@ def flights(tmp_path_factory):
 
 
 @pytest.mark.parametrize("name", ["train", "val"])
-def test_truth_targets_match_the_sitl_dynamics(flights, name):
+def test_truth_targets_are_the_sitls_logged_accelerations(flights, name):
+    """The SITL logs its true accelerations at each step's state (TRUE_ACC): the truth targets are those,
+    one row per step, and equal the SITL's dynamics at the rows to single precision (measured: largest
+    error 2.1e-6 m/s^2, 1.0e-5 rad/s^2; 1 - R^2 <= 6e-14)."""
     ds = load_dataset(flights[name], targets="truth")
+    assert any("TRUE_ACC" in w for w in ds.warnings)
+    assert np.allclose(np.diff(ds.t), 0.004)  # every step, none dropped for a stencil
     phys = physics_targets(ds)
-    fit = r2(ds.targets, phys)
-    # held commands (train): only rows clear of a command change, 7-point stencils (1 - R^2 <= 2.4e-9
-    # measured; the same flight as step means: 1.5e-6 on dwx); sinusoids (val): step means
+    scale = np.abs(phys).max(axis=0)
+    error = np.abs(ds.targets - phys).max(axis=0)
+    assert (error <= 1e-6 * scale + 1e-6).all(), error
+    assert (phys.std(0) > 0.3).all()  # the flight really moves every target
+
+
+@pytest.mark.parametrize("name", ["train", "val"])
+def test_truth_targets_derived_from_the_states_match_the_sitl_dynamics(flights, name):
+    """A log without the SITL's accelerations (older logs; here the same log told to ignore them) gets its
+    truth targets from the states: held commands (train) 7-point stencils on the rows clear of a command
+    change (1 - R^2 <= 2.4e-9 measured; the same flight as step means: 1.5e-6 on dwx); sinusoids (val)
+    step means."""
+    ds = segment(read_tlog_dataset(flights[name], targets="truth", logged_accelerations=False))
+    assert not any("TRUE_ACC" in w for w in ds.warnings)
+    fit = r2(ds.targets, physics_targets(ds))
     floor = 1 - 1e-7 if name == "train" else 0.9999
     assert (fit > floor).all(), dict(zip(TARGET_NAMES, (1 - fit).round(12), strict=True))
-    # the flight really moves every target (not a trivially constant signal)
-    assert (phys.std(0) > 0.3).all()
 
 
 def test_sensor_targets_match_the_sitl_dynamics(flights):
@@ -89,9 +106,12 @@ def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
 
 def test_rows_columns_and_provenance(flights):
     path = flights["train"]
-    ds = load_dataset(path)
-    assert ds.format == "tlog" and ds.target_source == "truth" and ds.source == str(path)
-    assert ds.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    logged = load_dataset(path)
+    assert logged.format == "tlog" and logged.target_source == "truth" and logged.source == str(path)
+    assert logged.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+    # the SITL's logged accelerations: one row per step, the time-0 step included (750 steps + 1)
+    assert np.allclose(logged.t, np.round(np.arange(751) * 0.004, 6)) and logged.dropped_rows == 0
+    ds = segment(read_tlog_dataset(path, logged_accelerations=False))
     # 750 steps + the time-0 step; held commands: point derivatives on the 7-point stencil, so a row is kept
     # only when no command changes strictly inside its span (the motor lag restarts there) and the stencil
     # fits in the flight (2 rows lost at each end, where the 5-point one is used); the changes counted from
@@ -108,7 +128,7 @@ def test_rows_columns_and_provenance(flights):
     assert any("command change" in k for k in ds.drop_reasons)
     assert any("commands held" in w for w in ds.warnings)
     # paper-validate's sinusoids change every command every step: one row per step interval, at its midpoint
-    val = load_dataset(flights["val"])
+    val = segment(read_tlog_dataset(flights["val"], logged_accelerations=False))
     steps = (val.t - 0.002) / 0.004
     assert len(val) >= 500 - 1 and np.allclose(steps, np.round(steps))  # rows at the steps' midpoints
     assert any("exact mean accelerations over each 4 ms step" in w for w in val.warnings)
@@ -160,7 +180,7 @@ def test_truncated_log_yields_what_it_holds_with_a_warning(flights, tmp_path):
     cut.write_bytes(data[: len(data) // 2 + 7])
     ds = load_dataset(cut)
     full = load_dataset(flights["val"])
-    assert 0.4 * len(full) < len(ds) < 0.6 * len(full)
+    assert 0.4 * len(full) < len(ds) < 0.6 * len(full), (len(ds), len(full), ds.drop_reasons)
     assert any("truncated" in w for w in ds.warnings)
 
 

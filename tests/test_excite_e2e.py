@@ -14,8 +14,7 @@ from physics_targets import physics_targets, r2
 
 from identification.dataset import load_dataset
 from identification.excitation import load_profile
-from identification.readers.tlog import read_tlog_dataset
-from identification.segmentation import SegmentationSettings, segment
+from identification.segmentation import SegmentationSettings
 
 pytestmark = pytest.mark.e2e
 
@@ -87,14 +86,12 @@ def test_paper_profiles_fly_open_loop_from_altitude(sitl_at_altitude, tmp_path):
     assert "500 steps, 2.000 s simulated" in run.stdout and "final state" in run.stdout
     assert "excite paper-train" in run.stderr and "100%" in run.stderr  # the progress bar, on stderr
     ds = load_dataset(train)
-    # held commands: the rows whose 7-point stencil is clear of a command change (tests/test_dataset_tlog.py
-    # counts them from the log), every other step dropped with its reason; a SITL still waiting for its client
-    # resends its time-0 datagram, which the log may hold once more (dropped as a duplicate, not a step)
+    # the SITL's logged true accelerations: every step a row, none dropped (a SITL still waiting for its
+    # client resends its time-0 datagram, which the log may hold once more: a duplicate, not a step)
     steps = {k: v for k, v in ds.drop_reasons.items() if not k.startswith("duplicate time-0 datagram")}
-    assert 150 < len(ds) < 501 - 4 and sum(steps.values()) == 501 - len(ds), ds.drop_reasons
-    assert any("command change" in k for k in ds.drop_reasons)
+    assert len(ds) == 501 and not steps, ds.drop_reasons
     fit = r2(ds.targets, physics_targets(ds, "none"))
-    assert (fit > 0.99999).all(), fit
+    assert (fit > 1 - 1e-9).all(), fit
     # the rotor speeds are the SITL's true (lagged) speeds, spread over the groups' ranges
     assert ds.u.max() > 800.0 and ds.u.min() < 50.0
 
@@ -113,11 +110,11 @@ def test_paper_profiles_fly_open_loop_from_altitude(sitl_at_altitude, tmp_path):
     assert run.returncode == 0, run.stderr
     assert run.stderr == ""
     ds = load_dataset(val)
-    assert (r2(ds.targets, physics_targets(ds, "none")) > 0.9999).all()
+    assert (r2(ds.targets, physics_targets(ds, "none")) > 1 - 1e-9).all()
     # the true speeds are the paper's sinusoids through the motor lag (Tm = 0.02 s, command held per step),
-    # as logged per step (load_dataset's rows of this flight are step intervals: identification.step_targets)
-    ds = segment(read_tlog_dataset(val, step_intervals=False))
-    t = ds.t - ds.t[0] + 0.008  # rows start 2 steps after the flight's first step
+    # as logged per step (one row per step from the flight's first: the logged accelerations need no stencil)
+    assert np.allclose(np.diff(ds.t), 0.004)
+    t = ds.t - ds.t[0]
     decay = math.exp(-0.004 / 0.02)
     for i, p in enumerate((0.0, math.pi / 4, math.pi / 3, math.pi / 6)):
         command = 300.0 + 300.0 * np.sin(10.0 * t + p)

@@ -137,8 +137,10 @@ def test_hil_fields_units_bitmasks_and_order(start_sitl, raw_companion):
         k = t // 4000
         gps_step = k % 25 == 0
         expected = ["HIL_STATE_QUATERNION", "LOCAL_POSITION_NED"] + ["RAW_RPM"] * 4
-        expected += ["HIL_GPS"] * gps_step + ["HIL_SENSOR"]
+        expected += ["HIL_GPS"] * gps_step + ["DEBUG_FLOAT_ARRAY", "HIL_SENSOR"]
         assert types == expected, f"step {k}: {types}"
+        true_acc = msgs[-2]  # the true accelerations at the step's state: zero while held on the ground
+        assert true_acc.name == "TRUE_ACC" and true_acc.time_usec == t and not any(true_acc.data)
         assert all(m.get_srcSystem() == 1 and m.get_srcComponent() == 51 for m in msgs)
         assert msgs[0].time_usec == t and msgs[1].time_boot_ms == t // 1000
         assert [m.index for m in msgs[2:6]] == [0, 1, 2, 3]
@@ -146,7 +148,7 @@ def test_hil_fields_units_bitmasks_and_order(start_sitl, raw_companion):
         assert sensor.fields_updated == bits, f"step {k}: {sensor.fields_updated:#x}"
         assert sensor.id == 0
         if gps_step:
-            gps = msgs[-2]
+            gps = msgs[-3]
             assert gps.time_usec == t and gps.fix_type == 3 and gps.satellites_visible == 10
             assert abs(gps.lat - 473977420) < 20 and abs(gps.lon - 85455940) < 30
             assert abs(gps.alt - 488000) < 300  # mm

@@ -6,6 +6,9 @@ rotor, index 0..3 = motors 1..4, as bridge.messages sends them; ESC_STATUS where
 HIL_SENSOR. Only frames from the SITL's HIL component (the sender of HIL_SENSOR) are used; the time-0
 datagram the SITL repeats while waiting is counted once.
 
+Truth targets of a log with the SITL's true accelerations (DEBUG_FLOAT_ARRAY TRUE_ACC, every quadsr SITL log
+since session 43): those, at each step's own state: exact, nothing differentiated (one row per step). Older
+logs, or logged_accelerations=False, derive them from the states as follows.
 Truth targets of a log with rotor speeds and the companion's commands whose commands change at most steps
 (a controller, sinusoids): one row per step interval [t_k, t_k+1] at its midpoint, the targets the exact
 mean accelerations over the step, the state and rotor speeds those of the midpoint under the held command
@@ -72,6 +75,7 @@ _STATE_TYPES = {
     "HIL_GPS",
     "HIL_SENSOR",
     "ESC_STATUS",
+    "DEBUG_FLOAT_ARRAY",
 }
 
 
@@ -121,11 +125,13 @@ def read_tlog_dataset(
     gravity: float | None = None,
     sensor_settings: SensorTargetSettings | None = None,
     step_intervals: bool = True,
+    logged_accelerations: bool = True,
 ) -> Dataset:
     """Dataset of a quadsr .tlog: truth states, true rotor speeds, targets from truth or sensors.
 
-    Truth targets, when the log has rotor speeds and commands: one row per step interval at its midpoint
-    (identification.step_targets; step_intervals=False: per-sample kink-aware derivatives instead).
+    Truth targets: the SITL's logged true accelerations at each step where the log has them (False: derived
+    from the states even so). Else, when the log has rotor speeds and commands: one row per step interval at
+    its midpoint (identification.step_targets; step_intervals=False: per-sample kink-aware derivatives).
     """
     decimation = 1
     if rate_hz is not None:
@@ -187,6 +193,7 @@ def read_tlog_dataset(
     u = np.full((n, 4), np.nan)
     acc = np.full((n, 3), np.nan)
     gyro = np.full((n, 3), np.nan)
+    true_acc = np.full((n, 6), np.nan)  # the SITL's: NED m/s^2, FRD rad/s^2
     filt = RowFilter(n)
     no_hsq = np.zeros(n, bool)
     no_lpn = np.zeros(n, bool)
@@ -194,6 +201,8 @@ def read_tlog_dataset(
         obs = rows[int(tu)]["obs"]
         acc[i] = obs.imu.accel
         gyro[i] = obs.imu.gyro
+        if obs.accelerations is not None:
+            true_acc[i] = obs.accelerations
         if obs.truth is None:
             no_hsq[i] = True
         else:
@@ -235,6 +244,17 @@ def read_tlog_dataset(
         # not next to ground contact: the ground's reaction there changes within a step
         airborne = usable & (ground_s > SegmentationSettings().edge_margin_s)
         gravity_estimate = log_gravity(t, vel, euler, acc, airborne)
+    logged = np.isfinite(true_acc).all(axis=1)
+    if targets == "truth" and logged_accelerations and logged[usable].any():
+        filt.drop("step without the SITL's true accelerations (TRUE_ACC)", ~logged)
+        # the SITL reports zeros while it holds the vehicle on the ground plane: no free flight there
+        filt.drop("held on the ground plane (true accelerations zero)", (true_acc == 0.0).all(axis=1))
+        notes.append("truth targets: the SITL's true accelerations at each step's state (TRUE_ACC), exact")
+        if rate_hz is not None:
+            filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
+        state = np.concatenate((pos, vel, euler, rates), axis=1)
+        return _with_gravity(make_dataset(path, "tlog", targets, t, state, u, true_acc, filt, notes, extra,
+                                          aux={"ground_s": ground_s}), gravity_estimate)
     throttles = _held_throttles(times, commands) if commands else None
     kinks = _command_kinks(times, commands)
     crossing = None if kinks is None else _dilate(kinks, STENCIL_HALF - 1)  # a change inside the span
