@@ -1,5 +1,8 @@
 """Truth targets that are exact under the SITL's zero-order hold: one row per step interval, not per sample.
 
+For logs without the SITL's logged true accelerations (TRUE_ACC, since session 43: the .tlog reader takes
+those instead, exact at each step's state); the derivation below is what such logs get.
+
 Within one exchange step [t_k, t_k+1] the command is held, so the motion is smooth there and every kink (the
 motor lag restarting toward a new command) sits on a sample. A difference over one step is then not an
 approximation of anything: (v_k+1 - v_k) / dt is exactly the mean acceleration over the interval (NED m/s^2),

@@ -1,7 +1,8 @@
 """The six identification targets from a flight: ax ay az (NED, m/s^2) and dwx dwy dwz (FRD, rad/s^2).
 
 Two sources:
-- truth: differentiate the true (or estimated) velocity NED and body rates FRD. On uniform samples we use
+- truth: differentiate the true (or estimated) velocity NED and body rates FRD (a quadsr SITL .tlog carries
+  its true accelerations, which its reader takes instead: identification.readers.tlog). On uniform samples we use
   the 5-point central difference (4th order). The SITL's commands change only at step boundaries, so the
   accelerations have kinks at samples (the rotor speed's slope jumps when a new command arrives), and a
   stencil across a kink is only first-order accurate there. Where the log says where the kinks are (our
