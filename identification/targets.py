@@ -2,9 +2,9 @@
 
 Two sources:
 - truth: differentiate the true (or estimated) velocity NED and body rates FRD (a quadsr SITL .tlog carries
-  its true accelerations, which its reader takes instead: identification.readers.tlog). On uniform samples we use
-  the 5-point central difference (4th order). The SITL's commands change only at step boundaries, so the
-  accelerations have kinks at samples (the rotor speed's slope jumps when a new command arrives), and a
+  its true accelerations, which its reader takes instead: identification.readers.tlog). On uniform samples
+  we use the 5-point central difference (4th order). The SITL's commands change only at step boundaries, so
+  the accelerations have kinks at samples (the rotor speed's slope jumps when a new command arrives), and a
   stencil across a kink is only first-order accurate there. Where the log says where the kinks are (our
   .tlog holds the companion's commands), stencils are chosen not to cross them: the 5-point central one
   where no kink is within one sample, else a 4-point one-sided one that stays on one smooth side (both
