@@ -357,17 +357,13 @@ class Quadrotor:
 
     def acceleration_earth(self) -> tuple[float, float, float]:
         """Linear acceleration NED, m/s^2, at the current state (0 while resting on the ground)."""
-        if self._on_ground:
-            return 0.0, 0.0, 0.0
-        d = self._derivative(self._s, self._cmd)
-        return d[3], d[4], d[5]
+        a = self.accelerations()
+        return a[0], a[1], a[2]
 
     def angular_acceleration(self) -> tuple[float, float, float]:
         """Body angular acceleration FRD, rad/s^2, at the current state (0 while resting on the ground)."""
-        if self._on_ground:
-            return 0.0, 0.0, 0.0
-        d = self._derivative(self._s, self._cmd)
-        return d[10], d[11], d[12]
+        a = self.accelerations()
+        return a[3], a[4], a[5]
 
     def accelerations(self) -> tuple[float, float, float, float, float, float]:
         """(acceleration NED m/s^2, body angular acceleration FRD rad/s^2) at the current state, 6 floats.
