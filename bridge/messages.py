@@ -42,7 +42,7 @@ BARO_BITS = ABS_PRESSURE_BIT | PRESSURE_ALT_BIT | TEMPERATURE_BIT  # 0x1A00
 
 # DEBUG_FLOAT_ARRAY of the SITL's true accelerations (see the module docstring).
 TRUE_ACCELERATIONS_NAME = "TRUE_ACC"
-_TRUE_ACCELERATIONS_WIRE = TRUE_ACCELERATIONS_NAME.encode("ascii")
+TRUE_ACCELERATIONS_WIRE = TRUE_ACCELERATIONS_NAME.encode("ascii")  # as the name field packs it
 
 # HIL_ACTUATOR_CONTROLS as PX4 sends it when armed.
 ARMED_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -372,7 +372,7 @@ def encode_true_accelerations(
 ) -> DebugFloatArray:
     """DEBUG_FLOAT_ARRAY TRUE_ACC: the true acceleration NED m/s^2 and angular acceleration FRD rad/s^2."""
     data = [float(v) for v in (*accel_ned, *angular_accel_frd)] + [0.0] * 52
-    return DebugFloatArray(int(time_usec), TRUE_ACCELERATIONS_NAME.encode("ascii"), 0, data)
+    return DebugFloatArray(int(time_usec), TRUE_ACCELERATIONS_WIRE, 0, data)
 
 
 def encode_heartbeat(*args: object) -> Heartbeat:
@@ -640,5 +640,5 @@ class ObservationAssembler:
 def _is_true_accelerations(name: str | bytes) -> bool:
     """True for the name of the SITL's TRUE_ACC array (as pymavlink decodes it, or as wire bytes)."""
     if isinstance(name, bytes):
-        return name.rstrip(b"\0") == _TRUE_ACCELERATIONS_WIRE
+        return name.rstrip(b"\0") == TRUE_ACCELERATIONS_WIRE
     return name == TRUE_ACCELERATIONS_NAME

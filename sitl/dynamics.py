@@ -173,7 +173,8 @@ class Quadrotor:
         self._wind_model: Wind | None = None
         self._specific_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._specific_force_at: tuple[int, int] = (-1, 0)  # (time_usec, id of the state list) it is for
-        self._slope: tuple[float, ...] | None = None  # the derivative it came from
+        self._slope: tuple[float, ...] | None = None  # f(s, cmd) at the current state (_current_slope)
+        self._slope_at: tuple[int, int] = (-1, 0)  # (time_usec, id of the state list) _slope is for
         self._f = make_derivative(vehicle, self.motors, self.mixer, self._wind)
         self._cmd = (0.0, 0.0, 0.0, 0.0)
         self._s: list[float] = [0.0] * 17
@@ -225,7 +226,7 @@ class Quadrotor:
         self._time_usec = 0
         self._on_ground = False
         self._touchdown_left_usec = 0
-        self._specific_force_at = (-1, 0)
+        self._specific_force_at = self._slope_at = (-1, 0)
         if self.vehicle.wind.active:  # the wind restarts with time (same seed: same wind)
             self._wind_model = Wind(self.vehicle.wind, EXCHANGE_STEP)
             self._wind[:] = self._wind_model.sample(0.0)
@@ -271,17 +272,27 @@ class Quadrotor:
             self._wind[:] = self._wind_model.sample(self._time_usec * 1e-6)
 
     def _first_slope(self, s: list[float], cmd: Sequence[float]) -> list[float] | None:
-        """f(s, cmd) from the derivative the specific force was computed with at s (None if there is none).
+        """f(s, cmd) from the derivative already computed at s this step (None if there is none).
 
         Only the motor-lag rates depend on the command, so the cached derivative's first 13 entries hold; the
-        SITL asks for the specific force every step, which saves one of five derivative calls.
+        SITL reads the specific force and the true accelerations every step, which saves one of five
+        derivative calls.
         """
-        if self._paper or self._slope is None or self._specific_force_at != (self._time_usec, id(s)):
+        if self._slope is None or self._slope_at != (self._time_usec, id(s)):
             return None
         d = self._slope
         itm = self.motors.inv_time_constant
         return [*d[:13], (cmd[0] - s[13]) * itm, (cmd[1] - s[14]) * itm, (cmd[2] - s[15]) * itm,
                 (cmd[3] - s[16]) * itm]
+
+    def _current_slope(self) -> tuple[float, ...]:
+        """f(s, cmd) at the current state, computed once per step and kept (the specific force, the true
+        accelerations and the next step's first RK4 stage read it)."""
+        key = (self._time_usec, id(self._s))
+        if self._slope is None or self._slope_at != key:
+            self._slope = self._derivative(self._s, self._cmd)
+            self._slope_at = key
+        return self._slope
 
     def _derivative(self, s: Sequence[float], cmd: Sequence[float]) -> tuple[float, ...]:
         """d(state)/dt for the 17-float state under commanded rotor speeds cmd (rad/s)."""
@@ -368,16 +379,11 @@ class Quadrotor:
     def accelerations(self) -> tuple[float, float, float, float, float, float]:
         """(acceleration NED m/s^2, body angular acceleration FRD rad/s^2) at the current state, 6 floats.
 
-        The derivative specific_force_body computed this step is reused; zeros while resting on the ground.
+        Zeros while resting on the ground.
         """
         if self._on_ground:
             return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-        s = self._s
-        cached = self._specific_force_at == (self._time_usec, id(s))
-        if not self._paper and self._slope is not None and cached:
-            d = self._slope
-        else:
-            d = self._derivative(s, self._cmd)
+        d = self._current_slope()
         return d[3], d[4], d[5], d[10], d[11], d[12]
 
     def specific_force_body(self) -> tuple[float, float, float]:
@@ -398,7 +404,7 @@ class Quadrotor:
         if not self._paper:  # R^T (a - g e3) from the derivative: every effect's force, already summed
             if self._specific_force_at == (self._time_usec, id(s)):
                 return self._specific_force
-            d = self._slope = self._derivative(s, self._cmd)
+            d = self._current_slope()
             self._specific_force = _to_body(qw, qx, qy, qz, d[3], d[4], d[5] - self._g)
             self._specific_force_at = (self._time_usec, id(s))
             return self._specific_force

@@ -56,7 +56,7 @@ ACCEL_LIMIT = messages.ACCEL_LIMIT
 GYRO_LIMIT = messages.GYRO_LIMIT
 MG_PER_M_S2 = 1000.0 / messages.G0
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
-TRUE_ACC_NAME = messages.TRUE_ACCELERATIONS_NAME.encode("ascii")
+TRUE_ACC_WIRE = messages.TRUE_ACCELERATIONS_WIRE
 _ACC_PADDING = (0.0,) * 52  # DEBUG_FLOAT_ARRAY's data[58] past our six values
 LAT_E7_MAX, LON_E7_MAX = 900_000_000, 1_800_000_000  # degE7
 
@@ -152,7 +152,7 @@ class HilEncoder:
             var_h, var_v = wind.variance
             parts.append((msg_id, extra, pack(t, wn, we, wd, var_h, var_v, alt, 0.0, 0.0)))
         msg_id, extra, pack = self._acc
-        parts.append((msg_id, extra, pack(t, 0, TRUE_ACC_NAME, *quad.accelerations(), *_ACC_PADDING)))
+        parts.append((msg_id, extra, pack(t, 0, TRUE_ACC_WIRE, *quad.accelerations(), *_ACC_PADDING)))
         ax, ay, az = s.accel
         gx, gy, gz = s.gyro
         mx, my, mz = s.mag

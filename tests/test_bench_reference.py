@@ -78,7 +78,6 @@ def test_a_realistic_logs_rates_are_its_true_ones_and_its_rate_targets_hold_no_g
     # a step's gyro difference over dt: a constant bias cancels, and the mean over the flight's steps is the
     # gyro's change end to end over the time (its noise telescopes); a bias left in would be b_g / dt
     error = np.mean(ds.targets[:, 3:] - physics_targets(ds)[:, 3:], axis=0)  # rad/s^2
-    print("mean rate-target error", error, "b_g / dt", bias / 0.004)
     assert np.all(np.abs(error) < 0.25 * np.min(np.abs(bias)) / 0.004), (error, bias / 0.004)
 
 

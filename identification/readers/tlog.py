@@ -245,21 +245,12 @@ def read_tlog_dataset(
         airborne = usable & (ground_s > SegmentationSettings().edge_margin_s)
         gravity_estimate = log_gravity(t, vel, euler, acc, airborne)
     logged = np.isfinite(true_acc).all(axis=1)
-    if targets == "truth" and logged_accelerations and logged[usable].any():
-        filt.drop("step without the SITL's true accelerations (TRUE_ACC)", ~logged)
-        # the SITL reports zeros while it holds the vehicle on the ground plane: no free flight there
-        filt.drop("held on the ground plane (true accelerations zero)", (true_acc == 0.0).all(axis=1))
-        notes.append("truth targets: the SITL's true accelerations at each step's state (TRUE_ACC), exact")
-        if rate_hz is not None:
-            filt.drop(f"decimated to {rate_hz:g} Hz", (times // 4000) % decimation != 0)
-        state = np.concatenate((pos, vel, euler, rates), axis=1)
-        return _with_gravity(make_dataset(path, "tlog", targets, t, state, u, true_acc, filt, notes, extra,
-                                          aux={"ground_s": ground_s}), gravity_estimate)
+    use_logged = targets == "truth" and logged_accelerations and bool(logged[usable].any())
     throttles = _held_throttles(times, commands) if commands else None
     kinks = _command_kinks(times, commands)
     crossing = None if kinks is None else _dilate(kinks, STENCIL_HALF - 1)  # a change inside the span
     central = float(np.mean(~crossing[usable])) if crossing is not None and usable.any() else 1.0
-    if targets == "truth" and rotor is None and throttles is not None and step_intervals:
+    if targets == "truth" and not use_logged and rotor is None and throttles is not None and step_intervals:
         ratio = motor_lag_ratio(u, throttles, usable) if central < POINT_ROWS_ABOVE else None
         if central >= POINT_ROWS_ABOVE:
             notes.append(
@@ -305,7 +296,13 @@ def read_tlog_dataset(
             if decimation == 1:  # consecutive rows share a sample: the targets' noise is correlated
                 ds.target_noise = (STEP_MEAN,) * 3 + (STEP_DIFFERENCE,) * 3
             return _with_gravity(ds, gravity_estimate)
-    if targets == "truth":
+    if use_logged:
+        tgt = true_acc
+        filt.drop("step without the SITL's true accelerations (TRUE_ACC)", ~logged)
+        # the SITL reports zeros while it holds the vehicle on the ground plane: no free flight there
+        filt.drop("held on the ground plane (true accelerations zero)", (true_acc == 0.0).all(axis=1))
+        notes.append("truth targets: the SITL's true accelerations at each step's state (TRUE_ACC), exact")
+    elif targets == "truth":
         tgt[idx] = truth_targets(
             t[idx], vel[idx], rates[idx], dt=STEP_S, kinks=None if kinks is None else kinks[idx]
         )
