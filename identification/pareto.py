@@ -4,11 +4,14 @@ The pick rows (identification.data_roles) are held out from fitting and never us
 "held-out loss" below is the loss on them. The pick: among candidates with a finite held-out loss, let
 `best` be the smallest held-out loss; choose the least complex candidate whose held-out loss is
 <= best * (1 + rel_tol) + abs_tol * std(held-out target), ties broken by the lower held-out loss.
-rel_tol (2%) lets a simpler model win when extra terms only fit noise; abs_tol (1e-6 of the target's
-spread, about the float32 telemetry's rounding in a .tlog's targets) treats differences at rounding level
-as equal on noise-free data. At 1e-4 it hid real terms worth under 1e-4 of the spread (a rotor-drag
-flight's damping term, 13 % better on the pick rows); whether a small term is real is left to rel_tol and
-the identification rules below, which do not depend on the target's scale.
+rel_tol (2%) lets a simpler model win when extra terms only fit noise; abs_tol (1e-7 of the target's
+spread, about the float32 rounding of the accelerations a .tlog logs as its truth targets) treats
+differences at rounding level as equal on noise-free data. At 1e-4 it hid real terms worth under 1e-4 of
+the spread (a rotor-drag flight's damping term, 13 % better on the pick rows); at 1e-6, once the truth
+targets were the SITL's own accelerations (session 43), it hid two of closed-loop fang-chen-aero's wy'
+terms that lower the pick loss 4x (2.1e-6 against 9.2e-6 rad/s^2, a spread of 14 rad/s^2). Whether a small
+term is real is left to rel_tol and the identification rules below, which do not depend on the target's
+scale.
 Before that, candidates the flight does not identify are set aside: those with a term whose t ratio
 (coefficient over its standard error, inflated by the term's VIF; beside a constant offset when the candidate
 has no constant: a term the flight cannot tell from a sensor's bias is not identified) on the rows it is

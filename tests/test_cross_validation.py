@@ -167,17 +167,18 @@ def test_the_polish_leaves_a_pick_without_a_finite_score_alone():
 
 
 def test_the_polish_keeps_a_small_term_the_folds_pin_down():
-    # a term whose removal costs less than the tolerance's absolute part (1e-6 of the target's spread) but
-    # is worse on the held-out rows far beyond their noise: the flight pins it down, so it stays; with
+    # a term whose removal costs less than the tolerance's absolute part (abs_tol of the target's spread)
+    # but is worse on the held-out rows far beyond their noise: the flight pins it down, so it stays; with
     # cv_polish_z 0 (the tolerance alone) it is dropped as the simpler model
+    selection = EngineSettings().selection
+    size = selection.abs_tol  # the term's and the noise's RMS
     rng = np.random.default_rng(5)
     X = _rows(6000, 6)
     one, vb, small = sympy.Integer(1), S["vb"], S["wx"] * S["wz"]
-    c = 1e-6 / float(np.std(expression_columns([small], X)))
-    y = expression_columns([one, vb, small], X) @ np.array([0.2, -0.4, c]) + 1e-6 * rng.standard_normal(6000)
+    c = size / float(np.std(expression_columns([small], X)))
+    y = expression_columns([one, vb, small], X) @ np.array([0.2, -0.4, c]) + size * rng.standard_normal(6000)
     rows = FoldedRows([(X[:4800], y[:4800], None, 3), (X[4800:], y[4800:], None, 3)], folds=5)
     picked = move_candidate([one, vb, small], rows.loss(one + vb + small, "absolute"), rows, "absolute", "t")
-    selection = EngineSettings().selection
     removed = rows.loss(one + vb, "absolute")
     assert removed < picked.holdout_loss * (1 + selection.rel_tol) + selection.abs_tol * rows.scale
     kept = polish_by_cross_validation(picked, [picked], rows, "absolute", selection, lambda new: None)

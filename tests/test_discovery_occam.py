@@ -164,9 +164,27 @@ def test_pick_limit_is_the_picks_own_tolerance() -> None:
     sel = SelectionSettings()
     cs = [cand(10, 1.0), cand(5, 1.015), cand(3, 1.03), cand(2, 0.5, t=1.0)]  # the last is not identified
     limit = pick_limit(cs, sel, scale=2.0)
-    assert limit == pytest.approx(1.0 * 1.02 + 1e-6 * 2.0) == within_tolerance(1.0, sel, 2.0)
+    assert limit == pytest.approx(1.0 * 1.02 + sel.abs_tol * 2.0) == within_tolerance(1.0, sel, 2.0)
     assert select(cs, sel, scale=2.0).complexity == 5
     assert pick_limit([], sel) == float("inf")
+
+
+def test_on_exact_targets_a_term_worth_a_millionth_of_the_spread_is_picked() -> None:
+    """The pick's absolute tolerance is the targets' rounding, not more: closed-loop fang-chen-aero's wy'
+    (spread 14.3 rad/s^2, the SITL's own float32 accelerations) has two real terms (the translational lift
+    of wx^2 and wy^2 through the CG's offset) worth 2.1e-6 against 9.2e-6 rad/s^2 on the pick rows. At 1e-6
+    of the spread (1.4e-5) the pick took the model without them; the float32 rounding of those targets is
+    about 1e-7 of their spread."""
+    from identification.candidate import Candidate
+
+    def cand(cx: int, h: float) -> Candidate:
+        return Candidate(expression=sympy.Integer(cx), complexity=cx, train_loss=h, holdout_loss=h,
+                         weakest_t=400.0)
+
+    sel = SelectionSettings()
+    assert select([cand(1194, 9.2e-6), cand(1206, 2.1e-6)], sel, scale=14.3).complexity == 1206
+    # a gain at the rounding level itself is no evidence: the simpler model stays
+    assert select([cand(1194, 2.1e-6 + 5e-7), cand(1206, 2.1e-6)], sel, scale=14.3).complexity == 1194
 
 
 def test_polish_rule_is_validated(tmp_path) -> None:
