@@ -43,6 +43,7 @@ from identification.true_model import random_states, true_body_expressions
 
 REPO = Path(__file__).resolve().parents[1]
 GROUND_VEHICLE = load_vehicle(str(REPO / "bench" / "vehicles" / "buaa-ground-effect.yaml"))  # R 0.127 m
+AERO_VEHICLE = load_vehicle(str(REPO / "sitl" / "vehicles" / "fang-chen-aero.yaml"))  # translational lift
 
 
 def _rows(n: int, seed: int, tilt: float = 0.3, heights: tuple[float, float] = (0.2, 1.0)) -> np.ndarray:
@@ -56,10 +57,10 @@ def _rows(n: int, seed: int, tilt: float = 0.3, heights: tuple[float, float] = (
     return np.hstack([xi, u])
 
 
-def _law(target: str) -> tuple[sympy.Expr, sympy.Expr]:
+def _law(target: str, vehicle=GROUND_VEHICLE) -> tuple[sympy.Expr, sympy.Expr]:
     """(the vehicle's true target, its no-ground part), body frame."""
-    return (true_body_expressions(GROUND_VEHICLE)[target],
-            true_body_expressions(GROUND_VEHICLE.with_overrides(ground="none"))[target])
+    return (true_body_expressions(vehicle)[target],
+            true_body_expressions(vehicle.with_overrides(ground="none"))[target])
 
 
 def test_the_hubs_are_found_from_the_thrust_alone():
@@ -270,9 +271,7 @@ def test_the_default_is_the_shared_law_and_the_copyable_files_give_the_earlier_e
 def test_the_law_holds_the_ground_on_a_rotors_airspeed_thrust():
     # fang-chen-aero: translational lift (each hub's in-plane airspeed) in every rotor's thrust, and the
     # ground multiplies all of it; the u_i^2 law alone misses that part, with the hubs' airspeeds it does not
-    aero = load_vehicle(str(REPO / "sitl" / "vehicles" / "fang-chen-aero.yaml"))
-    truth = true_body_expressions(aero)["fz"]
-    far = true_body_expressions(aero.with_overrides(ground="none"))["fz"]
+    truth, far = _law("fz", AERO_VEHICLE)
     X, Xv = _rows(3000, 3), _rows(1000, 4)
     y = body_values(truth, X)
     inputs = primitive_matrix(X, HUB_PRIMITIVES)
@@ -290,14 +289,12 @@ def test_with_the_airspeed_terms_the_hubs_are_placed_by_the_whole_law(target, ar
     # placed by the u_i^2 terms alone, the offsets took up the translational lift the law did not hold yet
     # (18-225 mm off on these rows, the law 1.3-2.7 % off); the offsets are refit with the airspeed terms in
     X, Xv = _rows(3000, 3), _rows(1000, 4)
-    aero = load_vehicle(str(REPO / "sitl" / "vehicles" / "fang-chen-aero.yaml"))
-    truth = true_body_expressions(aero)[target]
-    far = true_body_expressions(aero.with_overrides(ground="none"))[target]
+    truth, far = _law(target, AERO_VEHICLE)
     rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
     law = fit_hub_law(primitive_matrix(X, HUB_PRIMITIVES), body_values(truth, X), rest, 4, airspeed=True,
                       arm=arm)
     assert law is not None and law.airspeed
-    np.testing.assert_allclose(np.asarray(law.offsets), np.asarray(aero.rotor_arms), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(law.offsets), np.asarray(AERO_VEHICLE.rotor_arms), atol=1e-3)
     assert height_law_error(law.expression() + far, truth - far, Xv) < 1e-3
 
 
@@ -391,8 +388,8 @@ def test_a_refit_law_takes_the_hubs_airspeed_only_where_the_thrust_grows_with_it
     # the second law is fitted beside the pick the first law's rounds reached, with the hubs' airspeed part,
     # and kept only when its own rounds beat that pick: fang-chen-aero's rotors gain thrust with airspeed
     # (translational lift, which the ground multiplies too), the ground-effect vehicle's do not
-    aero = load_vehicle(str(REPO / "sitl" / "vehicles" / "fang-chen-aero.yaml"))
-    truth, far = (true_body_expressions(v)["fz"] for v in (aero, aero.with_overrides(ground="none")))
+    aero = AERO_VEHICLE
+    truth, far = _law("fz", aero)
     errors = {}
     for fits in (2, 1):  # the default, and session 20's law fitted once
         best, engine = _engine_fit("fz", aero, DiscoverySettings(hub_law_fits=fits))
