@@ -13,17 +13,19 @@ moves are fitted on the fit rows, as the engine's candidates.
 Beside every candidate's terms the moves may use `extra` terms: identify passes the engine's shape twins of
 the pick's terms (DiscoveryEngine.nearest_features; SelectionSettings.cv_polish_twins), and the features
 most correlated with the pick's cross-validated residual over the fit and pick rows
-(DiscoveryEngine.residual_features; SelectionSettings.cv_polish_residual): the engine screens on the fit rows
-alone, and a term only the pick rows excite is in none of its candidates. On realistic-sensor
-fang-chen-aero (seed 2) fz held |wz| where the true term is wz^2: the swap has the lower cross-validated
-loss (0.011039 against 0.011049), but no candidate held wz^2, so no move could bring it in. More moves
-change the rotor speeds' family, in all terms at once and in each cofactor's terms (rotor_power_twins): on
-realistic-sensor fang-chen-aero (seed 5) fy held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two
-terms, where the SITL's rotor drag is linear in the speeds; no one-term move leaves that family. And each
-cofactor's rotor terms may be merged into the mixer's sign pattern nearest their coefficients, alone or
-beside the rotors' sum (rotor_patterns): on closed-loop realistic-sensor fang-chen-aero (seed 5) dwx held
-wz u2^2 and wz (u1^2 + u2^2 + u3^2 - u4^2) (VIF 77), where the SITL has wz (u1 - u2 + u3 - u4) and a small
-common part; the merged pair has the lower cross-validated loss and a VIF of 2.
+(DiscoveryEngine.residual_features; SelectionSettings.cv_polish_residual): the engine screens on the fit
+rows alone, and a term only the pick rows excite is in none of its candidates; and each height term of the
+pick without rotor speeds times the rotors' thrust sum (thrust_twins;
+SelectionSettings.cv_polish_thrust_twins). On realistic-sensor fang-chen-aero (seed 2) fz held |wz| where
+the true term is wz^2: the swap has the lower cross-validated loss (0.011039 against 0.011049), but no
+candidate held wz^2, so no move could bring it in. More moves change the rotor speeds' family, in all terms
+at once and in each cofactor's terms (rotor_power_twins): on realistic-sensor fang-chen-aero (seed 5) fy
+held -2.67e-8 wz (u1^2 - u2^2 + u3^2 - u4^2), written as two terms, where the SITL's rotor drag is linear in
+the speeds; no one-term move leaves that family. And each cofactor's rotor terms may be merged into the
+mixer's sign pattern nearest their coefficients, alone or beside the rotors' sum (rotor_patterns): on
+closed-loop realistic-sensor fang-chen-aero (seed 5) dwx held wz u2^2 and wz (u1^2 + u2^2 + u3^2 - u4^2)
+(VIF 77), where the SITL has wz (u1 - u2 + u3 - u4) and a small common part; the merged pair has the lower
+cross-validated loss and a VIF of 2.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import sympy
 
+from identification.body_frame import PRIMITIVE_SYMBOLS
 from identification.candidate import Candidate
 from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
@@ -45,6 +48,17 @@ from identification.paired_loss import paired_loss_t
 from identification.pareto import select, within_tolerance
 from identification.refit import terms_candidate
 from identification.sparse import single_threaded_blas
+
+
+def thrust_twins(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:
+    """Each shape that reads the height h (m) and no rotor speed, times the rotors' thrust sum
+    u1^2 + .. + u4^2 ((rad/s)^2): a ground effect scales the rotors' thrust, and on a flight near hover the
+    bare law and the law times the thrust differ by little, so the screening takes the simpler one."""
+    h = PRIMITIVE_SYMBOLS["h"]
+    rotors = [PRIMITIVE_SYMBOLS[f"u{i}"] for i in range(1, 5)]
+    thrust = sympy.Add(*(u**2 for u in rotors))
+    return [s * thrust for s in shapes
+            if h in s.free_symbols and not any(u in s.free_symbols for u in rotors)]
 
 
 def model_size(shapes: Sequence[sympy.Expr]) -> int:
@@ -114,7 +128,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             return chosen
         mark(new)
         candidates.extend(new)
-        again = select(candidates, selection, scale=scale)
+        again = select(candidates, selection, scale=scale, by_degree=True)
         if again is chosen:
             return chosen
         chosen = again

@@ -260,6 +260,11 @@ class SelectionSettings:
     # over the fit and pick rows: the engine screens on the fit rows alone, so a term only the pick rows
     # excite (a flight that yaws late: the yaw couplings) is in none of its candidates; 0: none
     cv_polish_residual: int = 5
+    # and each height term of the pick that reads no rotor speed, times the rotors' thrust sum
+    # u1^2 + .. + u4^2 (cv_polish.thrust_twins): a ground effect scales the thrust, and near hover the bare
+    # law fits nearly as well, so the screening takes it (closed-loop realistic-sensor fang-chen-aero, seed
+    # 19: fz held -0.008/h^2 and its constant, the accelerometer's bias, 42 % off); false: none
+    cv_polish_thrust_twins: bool = True
     # the chosen structure's refit (on the fit and pick rows) by generalised least squares where the rows
     # are weak and the log states its targets' raw noise (identification.weak_noise): the weak rows' noise
     # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate

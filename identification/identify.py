@@ -52,7 +52,7 @@ from identification.collinearity import (
     terms_collinearity,
 )
 from identification.cross_validation import FoldedRows, attach_cross_validated, identify_on
-from identification.cv_polish import polish_by_cross_validation
+from identification.cv_polish import polish_by_cross_validation, thrust_twins
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
@@ -303,7 +303,7 @@ def identify(
         mark_self_feedback(candidates, X[ok], y[ok], name)
         pick_y = yp[okp] if ops["pick"] is None else ops["pick"] @ yp[okp]
         scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
-        chosen = select(candidates, settings.selection, scale=scale)
+        chosen = select(candidates, settings.selection, scale=scale, by_degree=True)
         if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
             twins, current = settings.selection.cv_polish_twins, term_shapes(chosen.expression)
             extra = eng.nearest_features(current, twins) if twins > 0 and hasattr(eng, "nearest_features") \
@@ -312,6 +312,8 @@ def identify(
                 extra += eng.residual_features([(part[0], part[2]) for part in folded.parts],
                                                folded.y - folded.predictions(current),
                                                settings.selection.cv_polish_residual, [*current, *extra])
+            if settings.selection.cv_polish_thrust_twins:
+                extra += [t for t in thrust_twins(current) if t not in extra]
             chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
                                                 functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
                                                                   target=name), extra=extra)

@@ -183,6 +183,31 @@ def complexity(expr: sympy.Expr) -> int:
             + sum(1 for node in nodes if isinstance(node, sympy.Abs)) - signs)
 
 
+@functools.lru_cache(maxsize=4096)
+def degree(expr: sympy.Expr) -> float:
+    """The summed polynomial degree of an expression's additive terms (a factor's degree times its power's
+    size, |x| as x, sqrt(x^2 + y^2) 1, 1/h^2 2, any other function 1, a number 0): the pick's tie-break
+    between equally complex models (identification.pareto)."""
+    return float(sum(_term_degree(t) for t in sympy.Add.make_args(sympy.sympify(expr))))
+
+
+def _term_degree(e: sympy.Expr) -> float:
+    """One term's degree (degree)."""
+    if e.is_Number:
+        return 0.0
+    if e.is_Symbol:
+        return 1.0
+    if e.is_Mul:
+        return sum(_term_degree(a) for a in e.args)
+    if e.is_Add:
+        return max(_term_degree(a) for a in e.args)
+    if e.is_Pow:
+        return abs(float(e.exp)) * _term_degree(e.base) if e.exp.is_Number else 1.0
+    if isinstance(e, sympy.Abs):
+        return _term_degree(e.args[0])
+    return 1.0
+
+
 def file_sha256(path: str | os.PathLike[str]) -> str:
     """The SHA-256 of a file's bytes, hex."""
     digest = hashlib.sha256()

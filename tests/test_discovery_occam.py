@@ -254,3 +254,25 @@ def test_within_tolerance_the_square_wins_over_abs_and_beyond_it_the_data_decide
     assert select([absolute, square], sel) is square
     assert select([cand(0.3 * wz**2 - 0.1 * wy, 1.05), cand(0.3 * sympy.Abs(wz) - 0.1 * wy, 1.0)],
                   sel).expression.has(sympy.Abs)
+
+
+def test_of_equally_complex_models_within_tolerance_the_lower_degree_wins() -> None:
+    """wz**2 and wz**4 cost the same (an integer power is one unary operator); of two models that differ
+    only there and are both within the pick's tolerance, the lower degree is picked (on realistic-sensor
+    fang-chen-aero, seed 19, fz held wz**4 where the SITL has wz**2: the quartic won by noise); where the
+    quartic is better beyond the tolerance, it is picked."""
+    from identification.candidate import Candidate
+    from identification.model_file import complexity, degree
+
+    def cand(expr: sympy.Expr, h: float) -> Candidate:
+        return Candidate(expression=expr, complexity=complexity(expr), train_loss=h, holdout_loss=h,
+                         weakest_t=20.0)
+
+    assert degree(0.3 * wz**4 - 0.1 * wy) == 5 and degree(0.3 * wz**2 - 0.1 * wy) == 3
+    assert degree(wz * sympy.Abs(wz)) == degree(wx * wy) == 2 and degree(sympy.Integer(2)) == 0
+    sel = SelectionSettings()
+    square, quartic = cand(0.3 * wz**2 - 0.1 * wy, 1.01), cand(0.3 * wz**4 - 0.1 * wy, 1.0)
+    assert square.complexity == quartic.complexity
+    assert select([quartic, square], sel, by_degree=True) is square
+    assert select([quartic, square], sel) is quartic  # the engine's own rounds: loss alone
+    assert select([cand(0.3 * wz**2 - 0.1 * wy, 1.05), quartic], sel, by_degree=True) is quartic
