@@ -258,9 +258,10 @@ def test_within_tolerance_the_square_wins_over_abs_and_beyond_it_the_data_decide
 
 def test_of_equally_complex_models_within_tolerance_the_lower_degree_wins() -> None:
     """wz**2 and wz**4 cost the same (an integer power is one unary operator); of two models that differ
-    only there and are both within the pick's tolerance, the lower degree is picked (on realistic-sensor
-    fang-chen-aero, seed 19, fz held wz**4 where the SITL has wz**2: the quartic won by noise); where the
-    quartic is better beyond the tolerance, it is picked."""
+    only there and are both within the pick's tolerance, the final pick (by_degree) takes the lower degree
+    (on realistic-sensor fang-chen-aero, seed 19, fz held wz**4 where the SITL has wz**2: the quartic won by
+    noise), the engine's own rounds the lower loss; where the quartic is better beyond the tolerance, it is
+    picked."""
     from identification.candidate import Candidate
     from identification.model_file import complexity, degree
 
