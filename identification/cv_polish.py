@@ -55,10 +55,8 @@ def thrust_twins(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:
     u1^2 + .. + u4^2 ((rad/s)^2): a ground effect scales the rotors' thrust, and on a flight near hover the
     bare law and the law times the thrust differ by little, so the screening takes the simpler one."""
     h = PRIMITIVE_SYMBOLS["h"]
-    rotors = [PRIMITIVE_SYMBOLS[f"u{i}"] for i in range(1, 5)]
-    thrust = sympy.Add(*(u**2 for u in rotors))
-    return [s * thrust for s in shapes
-            if h in s.free_symbols and not any(u in s.free_symbols for u in rotors)]
+    thrust = sympy.Add(*(PRIMITIVE_SYMBOLS[n] ** 2 for n in INPUT_NAMES))
+    return [s * thrust for s in shapes if h in s.free_symbols and not _rotors(s)]
 
 
 def model_size(shapes: Sequence[sympy.Expr]) -> int:
