@@ -179,17 +179,24 @@ class HubColumns:
     def _compute(self, offsets: np.ndarray, rotors: list[int]) -> dict[int, Block]:
         H = hub_heights(self.inputs, offsets)
         S = hub_airspeeds(self.inputs, offsets) if self.airspeed else None
-        out = {}
+        parts = []
         with np.errstate(all="ignore"):
             H = np.where(H > 0.0, H, 0.0)
             for i in rotors:
-                thrust = np.column_stack([self.u2[i] / H[:, i] ** k for k in range(1, self.powers + 1)])
-                air = None if S is None else np.column_stack([S[:, i] / H[:, i] ** k
-                                                              for k in range(1, self.powers + 1)])
-                for step in self.steps:
-                    thrust = step(thrust)
-                    air = None if air is None else step(air)
-                out[i] = (thrust, air)
+                parts += [self.u2[i] / H[:, i] ** k for k in range(1, self.powers + 1)]
+                if S is not None:
+                    parts += [S[:, i] / H[:, i] ** k for k in range(1, self.powers + 1)]
+            # every missing block through the steps at once: the projection reads its whole basis (N x m,
+            # tens of MB) per call, so one call for all of them, not one per rotor and kind
+            A = np.column_stack(parts)
+            for step in self.steps:
+                A = step(A)
+        width = self.powers * (1 if S is None else 2)
+        out = {}
+        for j, i in enumerate(rotors):
+            block = A[:, j * width:(j + 1) * width]
+            out[i] = (np.ascontiguousarray(block[:, :self.powers]),
+                      None if S is None else np.ascontiguousarray(block[:, self.powers:]))
         return out
 
     def blocks(self, offsets: np.ndarray) -> list[Block]:
