@@ -191,7 +191,7 @@ CASES: tuple[Case, ...] = (
     Case("sitl px4 thrust model", sitl_vehicle="buaa-px4-thrust"),
     Case("sitl wide frame with CG offset", sitl_vehicle="iris-wide-cg"),
     Case("sitl heavy vehicle", sitl_vehicle="heavy-650"),
-    # closed loop from the ground: the closed-loop profile (hover stabiliser on a slow Lissajous path with a
+    # closed loop from the ground: the closed-loop profile (hover stabiliser on a 2 m Lissajous path with a
     # turning heading, per-motor PRBS); the controller ties rotor speeds to angles and rates, so the
     # regressors are collinear and the engine must still return the physics' terms
     Case("sitl closed loop", sitl_vehicle="fang-chen-buaa", open_loop=False,

@@ -15,7 +15,7 @@ Kinds:
   random, no feedback gain); set rate_guard: null for the paper's pure open loop.
 - sinusoids (paper-validate): u_i = offset_i + amplitude_i sin(frequency t + phase_i).
 - closed-loop: the hover stabiliser (identification.hover_stabilizer) takes off, climbs, settles, then
-  follows a slow Lissajous path with a turning heading while PRBS or chirp excitation is added to every
+  follows a Lissajous path with a turning heading while PRBS or chirp excitation is added to every
   motor; the excitation fades near the box walls and the tilt limit, so the vehicle stays where a real
   one would survive. Optional, for a model with height and rate laws (issue 12): a `schedule` of segments
   flown in turn, each a hover height (low ones near the ground as well as cruise ones: a law in 1/h needs
