@@ -174,13 +174,34 @@ def check_expression(expr: sympy.Expr) -> None:
 def complexity(expr: sympy.Expr) -> int:
     """The size of an expression: the number of nodes in its sympy tree, an integer power counted as one
     unary operator (its exponent is no node of its own) and an absolute value as two, as a square root
-    (Pow(x, 1/2): x and its exponent): a kink costs what a fractional power does; a sign costs nothing
-    (u1 - u2 is as large as u1 + u2: the mixer's patterns are alike in size)."""
+    (Pow(x, 1/2): x and its exponent): a kink costs what a fractional power does; a signed square x |x|
+    (drag's v |v|, smooth: no kink) costs what x^2 does; a sign costs nothing (u1 - u2 is as large as
+    u1 + u2: the mixer's patterns are alike in size)."""
     nodes = list(sympy.preorder_traversal(expr))
+    if any(isinstance(node, sympy.Abs) for node in nodes):
+        squared = expr.replace(_signed_square, _as_square)
+        if squared != expr:
+            nodes = list(sympy.preorder_traversal(squared))
     signs = sum((2 if len(node.args) == 2 else 1) for node in nodes
                 if node.is_Mul and any(a is sympy.S.NegativeOne for a in node.args))
     return (len(nodes) - sum(1 for node in nodes if node.is_Pow and node.exp.is_Integer)
             + sum(1 for node in nodes if isinstance(node, sympy.Abs)) - signs)
+
+
+def _signed_square(e: sympy.Expr) -> bool:
+    """Whether e is a product holding some x and |x| (a signed square, complexity)."""
+    return bool(e.is_Mul) and any(isinstance(a, sympy.Abs) and a.args[0] in e.args for a in e.args)
+
+
+def _as_square(e: sympy.Expr) -> sympy.Expr:
+    """The product e with each pair x, |x| of its factors as x^2 (unevaluated: only its size is read)."""
+    out = list(e.args)
+    for a in e.args:
+        if isinstance(a, sympy.Abs) and a in out and a.args[0] in out:
+            out.remove(a)
+            out.remove(a.args[0])
+            out.append(sympy.Pow(a.args[0], 2, evaluate=False))
+    return sympy.Mul(*out, evaluate=False)
 
 
 @functools.lru_cache(maxsize=4096)
