@@ -178,17 +178,15 @@ def complexity(expr: sympy.Expr) -> int:
     (drag's v |v|, smooth: no kink) costs what x^2 does; a sign costs nothing (u1 - u2 is as large as
     u1 + u2: the mixer's patterns are alike in size)."""
     nodes = list(sympy.preorder_traversal(expr))
-    if any(isinstance(node, sympy.Abs) for node in nodes):
-        squared = expr.replace(_signed_square, _as_square)
-        if squared != expr:
-            nodes = list(sympy.preorder_traversal(squared))
+    if any(isinstance(node, sympy.Abs) for node in nodes):  # sized with each signed square as a square
+        nodes = list(sympy.preorder_traversal(expr.replace(_holds_signed_square, _as_square)))
     signs = sum((2 if len(node.args) == 2 else 1) for node in nodes
                 if node.is_Mul and any(a is sympy.S.NegativeOne for a in node.args))
     return (len(nodes) - sum(1 for node in nodes if node.is_Pow and node.exp.is_Integer)
             + sum(1 for node in nodes if isinstance(node, sympy.Abs)) - signs)
 
 
-def _signed_square(e: sympy.Expr) -> bool:
+def _holds_signed_square(e: sympy.Expr) -> bool:
     """Whether e is a product holding some x and |x| (a signed square, complexity)."""
     return bool(e.is_Mul) and any(isinstance(a, sympy.Abs) and a.args[0] in e.args for a in e.args)
 
