@@ -31,6 +31,7 @@ import numpy as np
 import sympy
 
 from identification.model_file import SYMBOLS, VARIABLE_NAMES, expression_to_string
+from identification.sparse import ADD_ORDER
 from identification.weak_noise import Whitener, column_scale, estimate_covariance
 
 VIF_LIMIT = 10.0
@@ -448,9 +449,6 @@ def effective_rows(resid: np.ndarray, max_lag: int | None = None) -> float:
     return float(np.clip(n / max(inflation, 1e-12), 1.0, n))
 
 
-_ADD_ORDER = functools.cmp_to_key(sympy.Basic.compare)  # sympy's order of a sum's terms (its number first)
-
-
 def term_shapes(expr: sympy.Expr) -> list[sympy.Expr]:
     """The distinct additive terms of an expression (nested sums flattened), coefficients dropped (a
     constant term gives the shape 1)."""
@@ -467,7 +465,7 @@ def _term_shapes(expr: sympy.Expr) -> tuple[sympy.Expr, ...]:
     if not any(a.is_Add for a in args):
         shapes = tuple(a.as_coeff_Mul()[1] for a in args)
         rest = list(args[1:] if args[0].is_Number else args)  # a sum's number leads it, the rest sorted
-        if len(set(shapes)) == len(shapes) and rest == sorted(rest, key=_ADD_ORDER):
+        if len(set(shapes)) == len(shapes) and rest == sorted(rest, key=ADD_ORDER):
             return shapes
     out: list[sympy.Expr] = []
     for term in sympy.Add.make_args(sympy.Add(*sympy.Add.make_args(expr))):  # flatten unevaluated sums

@@ -155,6 +155,33 @@ class FoldedRows:
             return np.full(len(self.y), np.nan)
         return _FoldEquations(a, self.y, self.dropped, self.held).predictions(list(range(len(shapes))))
 
+    def move_losses(self, current: Sequence[sympy.Expr], others: Sequence[sympy.Expr],
+                    kind: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """The cross-validated losses of every one-term move of the model `current` onto `others` at once:
+        (swaps (k, P): term i replaced by others[p]; additions (P,): others[p] added), each what
+        terms_loss gives that model up to rounding; NaN where the batch cannot answer (a term not prepared,
+        a model whose columns are (nearly) dependent: terms_loss answers those). None before prepare()."""
+        if self._pool is None or not len(self.y):
+            return None
+        base = [self._index.get(s) for s in current]
+        if any(i is None for i in base):
+            return None
+        extra = [self._index.get(s) for s in others]
+        ok = np.asarray([i is not None for i in extra], bool)
+        idx = np.asarray([-1 if i is None else i for i in extra], int)
+        swaps = np.full((len(base), len(extra)), np.nan)
+        adds = np.full(len(extra), np.nan)
+        if not ok.any():
+            return swaps, adds
+        cols = idx[ok]
+        for row, kept in [(i, base[:i] + base[i + 1:]) for i in range(len(base))] + [(None, base)]:
+            values = self._pool.added_losses(kept, cols, kind)
+            if row is None:
+                adds[ok] = values
+            else:
+                swaps[row, ok] = values
+        return swaps, adds
+
     def terms_loss(self, shapes: Sequence[sympy.Expr], kind: str) -> float:
         """The cross-validated loss of a model of these terms; inf when a term is not finite."""
         return loss_fn(self.y, self.predictions(shapes), kind) if len(self.y) else float("inf")
@@ -174,6 +201,7 @@ class _FoldEquations:
         size = np.sqrt(np.mean(a * a, axis=0))
         size[size == 0] = 1.0
         self.a = a / size
+        self.y = y
         self.gram, self.rhs = self.a.T @ self.a, self.a.T @ y
         self.dropped_gram = [self.a[d].T @ self.a[d] for d in dropped]
         self.dropped_rhs = [self.a[d].T @ y[d] for d in dropped]
@@ -190,6 +218,55 @@ class _FoldEquations:
         out = np.empty(len(self.a))
         for rows, a, coef in zip(self.held, self.held_a, _solve(grams, rhs), strict=True):
             out[rows] = np.ascontiguousarray(a[:, idx]) @ coef  # row-major as before: the same sums
+        return out
+
+
+    def added_losses(self, kept: Sequence[int], extra: np.ndarray, kind: str,
+                     chunk: int = 64) -> np.ndarray:
+        """The cross-validated loss of columns kept + [j] for each j of extra (P,), all at once: per fold,
+        kept's normal equations solved once and each extra column joined by its Schur complement (the
+        same least squares as predictions(kept + [j])). NaN where kept's equations are singular or column j
+        is (nearly) a combination of kept's on a fold's rows."""
+        kept = list(kept)
+        out = np.full(len(extra), np.nan)
+        preds = np.empty((len(self.a), len(extra)))
+        diag = np.diag(self.gram)[extra]
+        usable = np.ones(len(extra), bool)
+        for d_gram, d_rhs, rows, a in zip(self.dropped_gram, self.dropped_rhs, self.held, self.held_a,
+                                          strict=True):
+            g_kx = self.gram[np.ix_(kept, extra)] - d_gram[np.ix_(kept, extra)]
+            g_xx = diag - np.diag(d_gram)[extra]
+            r_x = self.rhs[extra] - d_rhs[extra]
+            if kept:
+                g_kk = self.gram[np.ix_(kept, kept)] - d_gram[np.ix_(kept, kept)]
+                try:
+                    w = np.linalg.solve(g_kk, np.column_stack([self.rhs[kept] - d_rhs[kept], g_kx]))
+                except np.linalg.LinAlgError:
+                    return out
+                b0, v = w[:, 0], w[:, 1:]
+                schur = g_xx - np.sum(g_kx * v, axis=0)
+                num = r_x - g_kx.T @ b0
+                a_k = a[:, kept]
+                base = a_k @ b0
+            else:
+                b0 = v = None
+                schur, num, base = g_xx, r_x, np.zeros(len(rows))
+            usable &= schur > 1e-9 * np.maximum(g_xx, 1e-300)
+            beta = num / np.where(schur > 0, schur, 1.0)
+            for start in range(0, len(extra), chunk):
+                part = slice(start, start + chunk)
+                resid = a[:, extra[part]]
+                if v is not None:
+                    resid = resid - a_k @ v[:, part]
+                preds[rows, part] = base[:, None] + resid * beta[part]
+        for start in range(0, len(extra), chunk):
+            part = slice(start, start + chunk)
+            err = self.y[:, None] - preds[:, part]
+            with np.errstate(all="ignore"):
+                value = (np.mean(np.abs(err), axis=0) if kind == "absolute"
+                         else np.sqrt(np.mean(err * err, axis=0)))
+            out[part] = np.where(np.all(np.isfinite(preds[:, part]), axis=0), value, np.inf)
+        out[~usable] = np.nan
         return out
 
 

@@ -103,15 +103,20 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     scale = folded.scale
     for _ in range(rounds):
         current = term_shapes(chosen.expression)
-        moves = (_moves(current, list(pool.values())) + rotor_power_twins(current)
-                 + rotor_patterns(chosen.expression, current))
+        have = set(current)
+        others = [p for p in pool.values() if p not in have]
+        batch = folded.move_losses(current, others, kind)  # the one-term moves' losses at once
+        moves = _moves(current, others)
+        known = _batch_values(batch, len(current), len(others), len(moves))
+        moves += rotor_power_twins(current) + rotor_patterns(chosen.expression, current)
         scored = []
-        for shapes in moves:
+        for m, shapes in enumerate(moves):
             key = _key(shapes)
             if key in seen:
                 continue
             seen.add(key)
-            value = folded.terms_loss(shapes, kind) if shapes else float("inf")
+            value = known[m] if m < len(known) and np.isfinite(known[m]) else (
+                folded.terms_loss(shapes, kind) if shapes else float("inf"))
             if np.isfinite(value):
                 scored.append((value, shapes))
         # a move the pick can choose is within its tolerance of the best identified loss, which is at most
@@ -146,14 +151,21 @@ def _key(shapes: Sequence[sympy.Expr]) -> frozenset[sympy.Expr]:
     return frozenset(shapes)
 
 
-def _moves(current: list[sympy.Expr], pool: list[sympy.Expr]) -> list[list[sympy.Expr]]:
-    """Each term removed, swapped for a pool term, and each pool term added."""
-    have = set(current)
-    others = [p for p in pool if p not in have]
+def _moves(current: list[sympy.Expr], others: list[sympy.Expr]) -> list[list[sympy.Expr]]:
+    """Each term removed, swapped for a term of others (not in current), and each of others added."""
     out = [current[:i] + current[i + 1:] for i in range(len(current))]
     out += [current[:i] + [p] + current[i + 1:] for i in range(len(current)) for p in others]
     out += [[*current, p] for p in others]
     return out
+
+
+def _batch_values(batch: tuple[np.ndarray, np.ndarray] | None, k: int, count: int, moves: int) -> np.ndarray:
+    """The losses FoldedRows.move_losses gave, in _moves' order (NaN: the removals, and what the batch
+    left to terms_loss)."""
+    if batch is None:
+        return np.full(moves, np.nan)
+    swaps, adds = batch
+    return np.concatenate([np.full(k, np.nan), swaps.reshape(k * count), adds])
 
 
 def rotor_power_twins(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
@@ -287,7 +299,7 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     the fit rows alone); None when its expression does not read back as its terms."""
     a, y, _lag = folded.fit_part(shapes)
     coef = np.linalg.lstsq(a, y, rcond=None)[0]
-    c = terms_candidate(shapes, coef, engine)
+    c = terms_candidate(shapes, coef, engine, ordered=True)  # read back without rebuilding the sum
     back = term_shapes(c.expression)
     if _key(back) != _key(shapes) or len(back) != len(shapes):
         return None  # the expression would not read back as these terms (a zero coefficient)

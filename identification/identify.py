@@ -73,10 +73,14 @@ from identification.weak_noise import stacked_whitener, stated_whitener, uncerta
 
 DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
-# started first when targets are fitted side by side: the thrust and roll/pitch moment targets hold the
-# rotors' terms and, near the ground, the hub law (its variable projection and the rounds after it), and
-# take two to four times the others' time (closed-loop fang-chen-aero: 38-54 s against 12-14 s per target)
-LONGEST_FIRST = ("fz", "az", "dwx", "dwy")
+# started first when targets are fitted side by side, the longest first: the thrust and roll/pitch moment
+# targets hold the rotors' terms and, near the ground, the hub law (its variable projection and the rounds
+# after it), and take two to four times the others' time (closed-loop fang-chen-aero: 53-66 s against
+# 12-17 s per target). On two cores the third of them starts when one of the first two ends, so the
+# longest of the three goes first: the pitch moment was the longest target in each of the four benchmark
+# cases whose longest target took over 40 s (seed 19, session 46), and started third it made closed-loop
+# fang-chen-aero's wall time that of dwx and dwy one after the other (119 s against 109 s)
+LONGEST_FIRST = ("dwy", "fz", "az", "dwx")
 
 
 def body_collinearity(expr: sympy.Expr, X: np.ndarray,

@@ -10,6 +10,7 @@ size. With loss 'absolute' each candidate's coefficients are refit for the absol
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from collections.abc import Callable, Iterator, Sequence
 
@@ -354,6 +355,9 @@ def sparse_active_sets(
     return list(sets.values())
 
 
+ADD_ORDER = functools.cmp_to_key(sympy.Basic.compare)  # sympy's order of a sum's terms (its number first)
+
+
 def _term(coef: float, feature: sympy.Expr) -> sympy.Expr:
     c = sympy.Float(float(coef))
     if feature == 1:
@@ -362,11 +366,16 @@ def _term(coef: float, feature: sympy.Expr) -> sympy.Expr:
     return sympy.Mul(c, *args, evaluate=False)  # unevaluated: keeps c*(u1**2 + ...) as written
 
 
-def sparse_expression(features: Sequence[Feature], coef: np.ndarray) -> sympy.Expr:
-    """sum of coefficient x feature over the nonzero coefficients, as written (unevaluated)."""
+def sparse_expression(features: Sequence[Feature], coef: np.ndarray, ordered: bool = False) -> sympy.Expr:
+    """sum of coefficient x feature over the nonzero coefficients, as written (unevaluated); ordered: its
+    terms in the order sympy's sum gives them (the number first), so that reading its terms back
+    (collinearity.term_shapes) need not rebuild the sum."""
     terms = [_term(c, features[j].expression) for j, c in enumerate(coef) if c != 0.0]
     if not terms:
         return sympy.Integer(0)
+    if ordered:
+        terms = [t for t in terms if t.is_Number] + sorted((t for t in terms if not t.is_Number),
+                                                           key=ADD_ORDER)
     return terms[0] if len(terms) == 1 else sympy.Add(*terms, evaluate=False)
 
 
