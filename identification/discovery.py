@@ -319,7 +319,7 @@ class DiscoveryEngine:
             # a proposed swap that is a combination of pool features takes the place of one of them
             swapped = _swap_in_combinations(F, pool, [i for i in swaps if i not in new],
                                             {i for i in pool if space.rungs[i] == 1}, scores,
-                                            _model_t(F, model_terms, y))
+                                            _model_t(F, model_terms, y), basis=basis)
             scores[pool] = -np.inf
             order = np.argsort(-scores, kind="stable")
             limit = s.screen + len(swaps) - len(new)
@@ -1120,6 +1120,26 @@ class _Basis:
         self.k = 1  # columns in use
         self.tol = tol
         self._dependent: set[int] = set()  # column indices found dependent on the basis
+        self._coordinates: dict[int, np.ndarray] = {}  # coordinates(): column index -> Q^T its unit column
+
+    def coordinates(self, F: np.ndarray, indices: Sequence[int]) -> np.ndarray:
+        """The coordinates in the basis (k, len(indices)) of each column F[:, i] scaled to unit norm (-1: the
+        constant column); kept per column and extended as the basis grows, so that each round computes only
+        the new columns' and the new basis vectors' (the rounds append columns to F, never change one)."""
+        k, q = self.k, self.q
+        todo: dict[int, list[int]] = {}  # columns by how many of their coordinates are kept
+        for i in indices:
+            have = self._coordinates.get(int(i))
+            done = 0 if have is None else len(have)
+            if done < k:
+                todo.setdefault(done, []).append(int(i))
+        for done, cols in todo.items():
+            unit = np.column_stack([q[:, 0] if i == -1 else F[:, i] for i in cols])
+            more = q[:, done:].T @ (unit / np.linalg.norm(unit, axis=0))
+            for m, i in enumerate(cols):
+                have = self._coordinates.get(i)
+                self._coordinates[i] = more[:, m] if have is None else np.concatenate([have, more[:, m]])
+        return np.column_stack([self._coordinates[int(i)] for i in indices])
 
     @property
     def q(self) -> np.ndarray:
@@ -1285,6 +1305,7 @@ def _swap_in_combinations(
     model_t: dict[int, float],
     tol: float = 1e-8,
     member_tol: float = 1e-6,
+    basis: _Basis | None = None,
 ) -> list[int]:
     """Each of `features` (columns of F (N,M)) that is a linear combination of two or more pool columns (and
     the constant) takes, in `pool` (changed in place), the place of one of them: the pool spans the same
@@ -1301,21 +1322,35 @@ def _swap_in_combinations(
     term the sparse paths can keep and the rest near zero). The combination (unique: the pool is
     independent) is the least-squares one over the pool's unit columns, its members those weighing more
     than `member_tol`; a feature whose rest exceeds `tol` of its norm is independent and left alone (only
-    features the pool rejected come here, a few a round). Returns the features swapped in."""
+    features the pool rejected come here, a few a round). basis: the rounds' basis (_Basis: it spans the
+    pool and the constant): the least squares is then solved on the columns' coordinates in it
+    (_Basis.coordinates, kept from round to round), not on the N rows. Returns the features swapped in."""
     swapped: list[int] = []
     if not features or not pool:
         return swapped
     n = F.shape[0]
-    cols = F[:, pool]
-    A = np.hstack([np.full((n, 1), 1.0 / np.sqrt(n)), cols / np.linalg.norm(cols, axis=0)])
     pending: list[tuple[int, np.ndarray]] = []
     for f in features:
         size = float(np.linalg.norm(F[:, f]))
         if f not in pool and np.isfinite(size) and size > 0.0:
             pending.append((f, F[:, f] / size))
+    if not pending:
+        return swapped
+    if basis is not None:
+        # |A c - v|^2 = |T c - Q^T v|^2 + |v - Q Q^T v|^2 for A = Q T, Q orthonormal
+        A = np.hstack([basis.coordinates(F, [-1]), basis.coordinates(F, pool)])
+    else:
+        cols = F[:, pool]
+        A = np.hstack([np.full((n, 1), 1.0 / np.sqrt(n)), cols / np.linalg.norm(cols, axis=0)])
     while pending:
         # one factorisation for every pending feature; after a swap the pool changed, so the rest again
-        coefs, rests = lstsq_by_qr(A, np.column_stack([v for _, v in pending]))
+        V = np.column_stack([v for _, v in pending])
+        if basis is not None:
+            inside = basis.q.T @ V
+            coefs, rests = lstsq_by_qr(A, inside)
+            rests = np.hypot(rests, np.linalg.norm(V - basis.q @ inside, axis=0))
+        else:
+            coefs, rests = lstsq_by_qr(A, V)
         for j, (f, v) in enumerate(pending):
             if f in pool or not rests[j] <= tol:
                 continue
@@ -1327,7 +1362,7 @@ def _swap_in_combinations(
                       (0, scores[i] if np.isfinite(scores[i]) else -np.inf))
             k = pool.index(out)
             pool[k] = f
-            A[:, k + 1] = v
+            A[:, k + 1] = v if basis is None else basis.coordinates(F, [f])[:, 0]
             swapped.append(f)
             pending = pending[j + 1:]
             break

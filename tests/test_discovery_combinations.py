@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from identification.discovery import _model_t, _swap_in_combinations
+from identification.discovery import _Basis, _model_t, _swap_in_combinations
 
 
 def _columns(n: int = 3000, seed: int = 0) -> np.ndarray:
@@ -69,3 +69,26 @@ def test_rung_one_members_are_never_replaced_and_an_independent_feature_is_left_
     pool = [3, 0, 1]  # without u4 wz the sum is no combination of the pool
     assert _swap_in_combinations(F, pool, [4], set(), np.zeros(6), {}) == []
     assert pool == [3, 0, 1]
+
+
+def test_the_rounds_basis_gives_the_swaps_the_rows_give():
+    """With the rounds' basis of the pool (_Basis.coordinates) the least squares runs on the columns'
+    coordinates, not the N rows: the same swaps, and after a swap and a grown basis the same again."""
+    F = _columns()
+    rng = np.random.default_rng(1)
+    y = -7.1e-5 * F[:, 0] - 2.2e-6 * F[:, 4] + 0.3 * F[:, 3] + rng.normal(0.0, 2e-3, len(F))
+    model_t = _model_t(F, np.array([3, 0, 1, 2]), y)
+    for scores in (np.zeros(6), np.array([0.0, 0.4, 0.1, 0.0, 0.0, 0.0])):
+        for fixed, t in (({3}, model_t), (set(), {3: 50.0, 0: 40.0}), ({0, 1, 2}, {})):
+            rows, coords = [3, 0, 1, 2], [3, 0, 1, 2]
+            basis = _Basis(len(F))
+            assert basis.add_first(F, coords) == coords
+            expected = _swap_in_combinations(F, rows, [4, 5], fixed, scores, t)
+            assert _swap_in_combinations(F, coords, [4, 5], fixed, scores, t, basis=basis) == expected
+            assert coords == rows
+    basis = _Basis(len(F))
+    pool = basis.add_first(F, [3, 0, 1])
+    assert _swap_in_combinations(F, pool, [4], set(), np.zeros(6), {}, basis=basis) == []  # not in the span
+    pool += basis.add_first(F, [2, 5])  # the basis grows: the kept coordinates are extended
+    assert _swap_in_combinations(F, pool, [4], {3, 5}, np.zeros(6), {}, basis=basis) == [4]
+    assert 4 in pool and len(pool) == 5
