@@ -78,8 +78,9 @@ R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 # after it), and take two to four times the others' time (closed-loop fang-chen-aero: 53-66 s against
 # 12-17 s per target). On two cores the third of them starts when one of the first two ends, so the
 # longest of the three goes first: the pitch moment was the longest target in each of the four benchmark
-# cases whose longest target took over 40 s (seed 19, session 46), and started third it made closed-loop
-# fang-chen-aero's wall time that of dwx and dwy one after the other (119 s against 109 s)
+# cases whose longest target took over 40 s (seed 19, session 46), and started third it ran after dwx on one
+# worker: closed-loop fang-chen-aero's targets took 12-66 s in one run, dwx then dwy 119 s of wall against
+# 109 s for dwy then the three short ones (the other worker: fz then dwx)
 LONGEST_FIRST = ("dwy", "fz", "az", "dwx")
 
 

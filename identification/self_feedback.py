@@ -116,7 +116,7 @@ def mark_self_feedback(candidates: Sequence[Candidate], X: np.ndarray, y: np.nda
     moved = (_moved(X, target, h), _moved(X, target, -h), h)
     own = OWN_SYMBOL[target]
     for c in candidates:
-        if own not in c.expression.free_symbols:  # no term of its own state: no self-feedback
+        if not c.expression.has(own):  # no term of its own state: no self-feedback
             c.self_feedback, c.self_feedback_se = 0.0, None
             continue
         c.self_feedback = slope(c, X, target, moved)
