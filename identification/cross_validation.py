@@ -220,7 +220,6 @@ class _FoldEquations:
             out[rows] = np.ascontiguousarray(a[:, idx]) @ coef  # row-major as before: the same sums
         return out
 
-
     def added_losses(self, kept: Sequence[int], extra: np.ndarray, kind: str,
                      chunk: int = 64) -> np.ndarray:
         """The cross-validated loss of columns kept + [j] for each j of extra (P,), all at once: per fold,

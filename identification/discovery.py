@@ -1127,6 +1127,8 @@ class _Basis:
         constant column); kept per column and extended as the basis grows, so that each round computes only
         the new columns' and the new basis vectors' (the rounds append columns to F, never change one)."""
         k, q = self.k, self.q
+        if not len(indices):
+            return np.zeros((k, 0))
         todo: dict[int, list[int]] = {}  # columns by how many of their coordinates are kept
         for i in indices:
             have = self._coordinates.get(int(i))

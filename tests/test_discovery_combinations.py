@@ -92,3 +92,4 @@ def test_the_rounds_basis_gives_the_swaps_the_rows_give():
     pool += basis.add_first(F, [2, 5])  # the basis grows: the kept coordinates are extended
     assert _swap_in_combinations(F, pool, [4], {3, 5}, np.zeros(6), {}, basis=basis) == [4]
     assert 4 in pool and len(pool) == 5
+    assert basis.coordinates(F, []).shape == (basis.k, 0)
