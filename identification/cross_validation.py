@@ -229,17 +229,19 @@ class _FoldEquations:
         kept = list(kept)
         out = np.full(len(extra), np.nan)
         preds = np.empty((len(self.a), len(extra)))
-        diag = np.diag(self.gram)[extra]
+        # the whole rows' parts, the same for every fold (each fold's dropped rows are taken from them)
+        diag, rhs_x, rhs_k = np.diag(self.gram)[extra], self.rhs[extra], self.rhs[kept]
+        gram_kx, gram_kk = self.gram[np.ix_(kept, extra)], self.gram[np.ix_(kept, kept)]
         usable = np.ones(len(extra), bool)
         for d_gram, d_rhs, rows, a in zip(self.dropped_gram, self.dropped_rhs, self.held, self.held_a,
                                           strict=True):
-            g_kx = self.gram[np.ix_(kept, extra)] - d_gram[np.ix_(kept, extra)]
+            g_kx = gram_kx - d_gram[np.ix_(kept, extra)]
             g_xx = diag - np.diag(d_gram)[extra]
-            r_x = self.rhs[extra] - d_rhs[extra]
+            r_x = rhs_x - d_rhs[extra]
             if kept:
-                g_kk = self.gram[np.ix_(kept, kept)] - d_gram[np.ix_(kept, kept)]
+                g_kk = gram_kk - d_gram[np.ix_(kept, kept)]
                 try:
-                    w = np.linalg.solve(g_kk, np.column_stack([self.rhs[kept] - d_rhs[kept], g_kx]))
+                    w = np.linalg.solve(g_kk, np.column_stack([rhs_k - d_rhs[kept], g_kx]))
                 except np.linalg.LinAlgError:
                     return out
                 b0, v = w[:, 0], w[:, 1:]
