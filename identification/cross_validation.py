@@ -82,6 +82,7 @@ class FoldedRows:
             self.dropped.append(np.flatnonzero(drop))
         self._columns: dict[sympy.Expr, np.ndarray] = {}  # sympy expressions hash by structure
         self._index: dict[sympy.Expr, int] = {}  # prepare(): a term's column in the prepared Gram matrices
+        self._offered: set[sympy.Expr] = set()  # every term prepare() was given (a non-finite one: no column)
         self._pool: _FoldEquations | None = None
         # identification() per term list: the engine's candidates are measured there, then re-aimed
         # (identify_on) and asked again by the pick
@@ -132,6 +133,7 @@ class FoldedRows:
         (cv_polish scores thousands of one-term moves over one pool of terms)."""
         keys: dict[sympy.Expr, None] = {}
         cols = []
+        self._offered.update(shapes)
         for s in shapes:
             col = self.column(s)
             if s not in keys and np.all(np.isfinite(col)):
@@ -141,6 +143,12 @@ class FoldedRows:
             return
         self._index = {k: i for i, k in enumerate(keys)}
         self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped, self.held)
+
+    def include(self, shapes: Sequence[sympy.Expr]) -> None:
+        """Prepare these terms too, beside those prepared (nothing when all are): a polish move can bring in a
+        term of no pool (a rotor pattern), and a model holding one would be scored move by move."""
+        if self._pool is not None and any(s not in self._offered for s in shapes):
+            self.prepare([*self._index, *shapes])
 
     def predictions(self, shapes: Sequence[sympy.Expr]) -> np.ndarray:
         """Each row's prediction by the terms refit (least squares) without the row's fold; NaN when a

@@ -105,6 +105,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
         current = term_shapes(chosen.expression)
         have = set(current)
         others = [p for p in pool.values() if p not in have]
+        folded.include(current)
         batch = folded.move_losses(current, others, kind)  # the one-term moves' losses at once
         moves = _moves(current, others)
         known = _batch_values(batch, len(current), len(others), len(moves))

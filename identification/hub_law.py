@@ -15,7 +15,11 @@ Here the law is refit as
 with the hub offsets r_i (m, FRD, one per rotor, unknown) fitted by variable projection: for given r the
 b_ik and the model's other terms are linear least squares, and r minimises what is left (scipy
 least_squares from r = 0, every hub at the CG: first the hubs' in-plane arms with their heights held at the
-CG's, then all twelve offsets from there). From the CG a vertical offset is the only thing that moves every
+CG's, then all twelve offsets from there; the jacobian is Kaufman's, the law's slope in r less its part in
+the span of the law's columns, one projected column per offset where differences refit the law twelve
+times, and the tolerances are tight: on a flat valley of the fit the default ones stopped where the law's
+airspeed coefficients were 3 % apart from where the differences' path ended, and the model after it
+differed). From the CG a vertical offset is the only thing that moves every
 hub's height at once, so a fit of all twelve at once went there first and could stay: on a closed-loop
 fang-chen-aero flight (seed 1) it ended with the hubs 0.02-0.17 m below the CG (true: 0.04 m above) and a
 residual 13x that of the true offsets, where the arms first reach the hubs (to 1 mm) and 6.6 instead of 44 s
@@ -155,8 +159,8 @@ def offsets_at_bound(offsets: np.ndarray, bound: float, fraction: float = MAX_OF
     return bool(np.max(np.abs(np.asarray(offsets, float)), initial=0.0) >= fraction * bound)
 
 
-# blocks kept per rotor, least recently used dropped first: a jacobian by differences needs a rotor's block
-# at the point and one step at a time (a block of 15,000 point rows and 4 powers is 0.5 MB)
+# blocks kept per rotor, least recently used dropped first: a step that moves one rotor's hub reuses the
+# other three's blocks (a block of 15,000 point rows and 4 powers is 0.5 MB)
 KEPT_BLOCKS = 8
 
 
@@ -221,6 +225,40 @@ class HubColumns:
         parts = [b[0] for b in blocks] + ([b[1] for b in blocks] if self.airspeed else [])
         return np.hstack(parts)
 
+    def slopes(self, offsets: np.ndarray, thrust: np.ndarray,
+               airspeed: np.ndarray | None = None) -> np.ndarray:
+        """The derivative (N', 12) of the law sum_ik thrust_ik u_i^2/H_i^k + airspeed_ik s_i/H_i^k with
+        respect to each offset (rotor-major x, y, z; per m), the weights (4, powers) held, taken through the
+        same steps as the columns: dH_i/dr_i = -g, and s_i's slope from v_b + w x r_i."""
+        r = np.asarray(offsets, float).reshape(4, 3)
+        x = self.inputs
+        g = np.column_stack([x[:, 1], x[:, 2], np.sqrt(np.clip(1.0 - x[:, 1] ** 2 - x[:, 2] ** 2, 0.0, 1.0))])
+        H = hub_heights(x, r)
+        parts = []
+        with np.errstate(all="ignore"):
+            H = np.where(H > 0.0, H, 0.0)
+            for i in range(4):
+                inverse = [H[:, i] ** -k for k in range(1, self.powers + 2)]  # 1/H^1 .. 1/H^(K+1)
+                # d(1/H^k)/dr_ij = k g_j / H^(k+1)
+                powers = range(1, self.powers + 1)
+                height = self.u2[i] * sum(thrust[i, k - 1] * k * inverse[k] for k in powers)
+                shift = np.zeros((len(x), 3))
+                if airspeed is not None and self.airspeed:
+                    ub, vb, wx, wy, wz = (x[:, j] for j in range(7, 12))
+                    vx = ub + wy * r[i, 2] - wz * r[i, 1]
+                    vy = vb + wz * r[i, 0] - wx * r[i, 2]
+                    s = vx * vx + vy * vy
+                    height = height + s * sum(airspeed[i, k - 1] * k * inverse[k] for k in powers)
+                    level = sum(airspeed[i, k - 1] * inverse[k - 1] for k in powers)
+                    # ds_i/dr_i from v_hub = v_b + w x r_i (its body x-y part)
+                    ds = np.column_stack([2 * vy * wz, -2 * vx * wz, 2 * (vx * wy - vy * wx)])
+                    shift = ds * level[:, None]
+                parts.append(height[:, None] * g + shift)
+            A = np.hstack(parts)
+            for step in self.steps:
+                A = step(A)
+        return A
+
 
 def fit_hub_law(
     inputs: np.ndarray,
@@ -276,15 +314,44 @@ def fit_hub_law(
             return np.hstack([sum(a[i] * L[:, (b * 4 + i) * powers:(b * 4 + i + 1) * powers]
                                   for i in range(4)) for b in range(blocks)])
 
+    last: dict = {}  # the last solve's offsets, scaled columns and coefficients, for its jacobian
+
     def solve(r: np.ndarray, with_airspeed: bool = False) -> tuple[np.ndarray, np.ndarray]:
         L_perp = law_cols(r, with_airspeed)  # already without its part in the span of rest
+        last.clear()
         if not np.all(np.isfinite(L_perp)):
             return np.full(len(y), 1e3 * scale), np.zeros(L_perp.shape[1])
         norms = np.linalg.norm(L_perp, axis=0)
         norms = np.where(norms > 0.0, norms, 1.0)
         b, *_ = np.linalg.lstsq(L_perp / norms, y_perp, rcond=None)
         b = b / norms
+        last.update(key=(r.tobytes(), with_airspeed), scaled=L_perp / norms, b=b)
         return y_perp - L_perp @ b, b
+
+    def jacobian(r: np.ndarray, with_airspeed: bool = False) -> np.ndarray:
+        """solve's residual's derivative (N', 12) with respect to the offsets (per m), by Kaufman's
+        variable-projection form: the law's slope at its fitted coefficients, less its part in the span of
+        the law's own columns (one projected column per offset, where differences refit the law 12 times)."""
+        if last.get("key") != (r.tobytes(), with_airspeed):
+            solve(r, with_airspeed)
+        if "b" not in last:  # a hub below the ground: no slope (the residual is flat there)
+            return np.zeros((len(y), 12))
+        b, K = last["b"], powers
+        table = tables[with_airspeed]
+        if arm is None:
+            thrust, air = b[:4 * K].reshape(4, K), (b[4 * K:].reshape(4, K) if with_airspeed else None)
+        else:
+            a = arms(r)
+            thrust, air = np.outer(a, b[:K]), (np.outer(a, b[K:2 * K]) if with_airspeed else None)
+        D = table.slopes(r, thrust, air)
+        if arm in ("roll", "pitch"):  # a rotor's share is its arm: -r_iy (roll) or r_ix (pitch)
+            j, sign = (1, -1.0) if arm == "roll" else (0, 1.0)
+            for i, (block, air_block) in enumerate(table.blocks(r)):
+                value = block @ b[:K] + (air_block @ b[K:2 * K] if with_airspeed else 0.0)
+                D[:, 3 * i + j] += sign * value
+        scaled = last["scaled"]
+        inside, *_ = np.linalg.lstsq(scaled, D, rcond=None)
+        return -(D - scaled @ inside)
 
     bound = float(np.median(inputs[:, 0]))
     if not np.isfinite(bound) or bound <= 0.0:
@@ -301,20 +368,23 @@ def fit_hub_law(
         """Whether offsets r (m) are no law's: a hub near the ground, or an offset at the box bound."""
         return hubs_reach_ground(inputs, r, min_height) or offsets_at_bound(r, bound)
 
-    def descend(offsets: Callable[[np.ndarray], np.ndarray], p0: np.ndarray,
+    def descend(offsets: Callable[[np.ndarray], np.ndarray], p0: np.ndarray, free: np.ndarray,
                 with_airspeed: bool = False) -> np.ndarray:
-        """The parameters p (of the offsets(p), m) least_squares reaches from p0 within the budget, or the
-        first iterate whose hubs reach the ground or the box bound (the stage ends there: its law is no
-        law)."""
+        """The parameters p (of the offsets(p), m: the offsets' components `free`, a mask of 12, the others
+        held) least_squares reaches from p0 within the budget, or the first iterate whose hubs reach the
+        ground or the box bound (the stage ends there: its law is no law)."""
 
         def stop_at_edge(p: np.ndarray) -> None:
             if no_law(offsets(p)):
                 raise StopIteration  # least_squares returns this iterate
 
         return least_squares(lambda p: solve(offsets(p), with_airspeed)[0] / scale, p0,
-                             bounds=(-bound, bound), x_scale=0.1 * bound, diff_step=1e-4,
+                             jac=lambda p: jacobian(offsets(p), with_airspeed)[:, free] / scale,
+                             bounds=(-bound, bound), x_scale=0.1 * bound,
+                             ftol=1e-12, xtol=1e-12, gtol=1e-12,
                              max_nfev=max_evaluations, callback=stop_at_edge).x
 
+    every = np.ones(12, bool)
     if max_evaluations > 0 and start is None:
         # the in-plane arms first, the heights held at the CG's, then all twelve (module docstring: from
         # the CG, a fit of all twelve moved the hubs vertically first and could stay there)
@@ -325,11 +395,11 @@ def fit_hub_law(
             r[planar] = p
             return r
 
-        x0[planar] = descend(in_plane, x0[planar])
+        x0[planar] = descend(in_plane, x0[planar], planar)
         if no_law(x0):
             return None
     if max_evaluations > 0:
-        x = descend(lambda r: r, x0)
+        x = descend(lambda r: r, x0, every)
     else:  # the offsets as given: only the coefficients fitted
         x = x0
     if no_law(x):
@@ -340,7 +410,7 @@ def fit_hub_law(
         # rank-deficient projection). Placed by the u_i^2 terms alone, the offsets take up the lift the law
         # does not hold yet: closed-loop fang-chen-aero (seed 17, the true other terms beside it) had its
         # hubs 2-8 mm off and the law 0.04-0.13 % off the exact one; refit, 0.1 mm and 0.003 %
-        x = descend(lambda r: r, x, True)
+        x = descend(lambda r: r, x, every, True)
         if no_law(x):
             return None
     residual, b = solve(x, airspeed)

@@ -84,6 +84,28 @@ def test_the_hubs_are_found_from_the_thrust_alone():
     assert height_law_error(at_cg.expression() + far, truth - far, Xv) > 5 * error
 
 
+@pytest.mark.parametrize("airspeed", [False, True])
+def test_the_laws_slope_in_its_offsets_is_its_columns_difference(airspeed):
+    """The fit's jacobian (Kaufman's variable projection) is built from HubColumns.slopes, the law's
+    derivative in each hub offset at fixed coefficients, through the weak form and the projection: it is
+    the central difference of the law's columns (the heights through the tilt, the hubs' airspeed)."""
+    X = _rows(500, 3)
+    P = primitive_matrix(X, HUB_PRIMITIVES)
+    rng = np.random.default_rng(4)
+    weak = rng.normal(size=(200, 500))
+    table = HubColumns(P, 3, airspeed, weak, lambda A: A - A.mean(axis=0))
+    r = np.asarray(GROUND_VEHICLE.rotor_arms).ravel() + rng.normal(0.0, 0.01, 12)
+    thrust = rng.normal(size=(4, 3)) * 1e-6
+    air = rng.normal(size=(4, 3)) * 1e-3 if airspeed else None
+    b = np.concatenate([thrust.ravel(), *([air.ravel()] if airspeed else [])])
+    step = 1e-6  # m
+    numeric = np.column_stack([(table.columns(r + step * e) - table.columns(r - step * e)) @ b / (2 * step)
+                               for e in np.eye(12)])
+    slopes = table.slopes(r, thrust, air)
+    assert slopes.shape == (200, 12)
+    np.testing.assert_allclose(slopes, numeric, atol=1e-6 * np.abs(numeric).max())
+
+
 def test_the_arms_are_found_before_the_heights():
     """From every hub at the CG a vertical offset is the only thing that moves all four hubs' heights at
     once. Fitting all twelve offsets from there, wy''s law at tilts within 0.1 rad ended in another basin:
