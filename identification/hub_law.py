@@ -105,11 +105,16 @@ class HubLaw:
         return sympy.Add(*terms)
 
 
+def gravity_directions(inputs: np.ndarray) -> np.ndarray:
+    """The gravity direction (N, 3) FRD, unit: (gx, gy, sqrt(1 - gx^2 - gy^2)) from HUB_PRIMITIVES columns."""
+    gx, gy = inputs[:, 1], inputs[:, 2]
+    return np.column_stack([gx, gy, np.sqrt(np.clip(1.0 - gx * gx - gy * gy, 0.0, 1.0))])
+
+
 def hub_heights(inputs: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Each hub's height (N, 4) m: h - r_i . g with gz = sqrt(1 - gx^2 - gy^2), offsets (4, 3) m FRD."""
-    h, gx, gy = inputs[:, 0], inputs[:, 1], inputs[:, 2]
-    gz = np.sqrt(np.clip(1.0 - gx * gx - gy * gy, 0.0, 1.0))
-    G = np.column_stack([gx, gy, gz])
+    h = inputs[:, 0]
+    G = gravity_directions(inputs)
     return h[:, None] - G @ np.asarray(offsets, float).T
 
 
@@ -232,15 +237,15 @@ class HubColumns:
         same steps as the columns: dH_i/dr_i = -g, and s_i's slope from v_b + w x r_i."""
         r = np.asarray(offsets, float).reshape(4, 3)
         x = self.inputs
-        g = np.column_stack([x[:, 1], x[:, 2], np.sqrt(np.clip(1.0 - x[:, 1] ** 2 - x[:, 2] ** 2, 0.0, 1.0))])
+        g = gravity_directions(x)
         H = hub_heights(x, r)
+        powers = range(1, self.powers + 1)
         parts = []
         with np.errstate(all="ignore"):
             H = np.where(H > 0.0, H, 0.0)
             for i in range(4):
                 inverse = [H[:, i] ** -k for k in range(1, self.powers + 2)]  # 1/H^1 .. 1/H^(K+1)
                 # d(1/H^k)/dr_ij = k g_j / H^(k+1)
-                powers = range(1, self.powers + 1)
                 height = self.u2[i] * sum(thrust[i, k - 1] * k * inverse[k] for k in powers)
                 shift = np.zeros((len(x), 3))
                 if airspeed is not None and self.airspeed:
