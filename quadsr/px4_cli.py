@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import time
@@ -55,6 +56,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="lockstep: as fast as PX4 answers (default); realtime: lockstep at most as fast as "
                         "the wall clock, for an offboard companion or a person at QGroundControl")
+    p.add_argument("--max-rtf", type=float, default=None, metavar="R",
+                   help="lockstep at most R times real time (realtime is 1). PX4's estimators (three EKF2 "
+                        "instances in SITL) are not part of its lockstep: at full speed on a loaded machine "
+                        "they fall behind and their start-up differs from run to run; a limit leaves them "
+                        "room (default: none in lockstep)")
     p.add_argument("--connect-timeout", type=float, default=60.0, metavar="S",
                    help="wall seconds PX4 gets to connect to the simulator (default 60)")
     p.add_argument("--lockstep-timeout", type=float, default=5.0, metavar="S",
@@ -94,6 +100,11 @@ def _px4(args: argparse.Namespace) -> int:
     for flag, value in timeouts:
         if not value > 0:
             raise UserError(f"{flag} must be a positive number of seconds, got {value}")
+    if args.max_rtf is not None and not (math.isfinite(args.max_rtf) and args.max_rtf > 0):
+        raise UserError(f"--max-rtf must be a positive number, got {args.max_rtf}")
+    if args.max_rtf is not None and args.mode == "realtime":
+        raise UserError("--max-rtf and --mode realtime both set the pace",
+                        hint="give one of them (realtime is --max-rtf 1)")
     build = check_build(Path(args.px4))
     vehicle = load_vehicle(args.vehicle)
     try:
@@ -114,8 +125,9 @@ def _px4(args: argparse.Namespace) -> int:
     sitl_args = ["--vehicle", str(vehicle.source_path or vehicle.name), "--companion-sysid",
                  str(ports.system_id()), "--lockstep-timeout", str(args.lockstep_timeout),
                  "--log", str(work / "truth.tlog")]
-    if args.mode == "realtime":
-        sitl_args += ["--max-rtf", "1"]
+    max_rtf = 1.0 if args.mode == "realtime" else args.max_rtf
+    if max_rtf is not None:
+        sitl_args += ["--max-rtf", f"{max_rtf:g}"]
     if args.sensors:
         sitl_args += ["--sensors", args.sensors]
     if args.seed is not None:

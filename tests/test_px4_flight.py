@@ -1,7 +1,11 @@
 """Real PX4 (../shared/px4) flies quadsr's SITL through `quadsr px4`, driven over PX4's GCS MAVLink link.
 
 One PX4 boot is shared by the module (the kill test ends it, so it runs last). Waits are on PX4's events and
-on simulated time (PX4's time_boot_ms in lockstep), with wall bounds only as a safety net.
+on simulated time (PX4's time_boot_ms in lockstep), with wall bounds only as a safety net. Lockstep at most
+twice real time: PX4's three EKF2 instances are not part of its lockstep, and at full speed beside other
+load they fell behind simulated time on the ground, learned a wrong accelerometer bias (-0.03 to -0.05
+m/s^2 for +0.009) and hovered 15-19 cm from the point by the truth (2 of 18 flights under five CPU hogs;
+none of 16 at twice real time; see README, "Pace on a loaded machine").
 """
 
 from __future__ import annotations
@@ -29,7 +33,8 @@ def px4_flight(tmp_path_factory):
     """`quadsr px4` on a free instance with ideal sensors, ready for takeoff; a GCS connected to it."""
     work = tmp_path_factory.mktemp("px4")
     started = time.monotonic()
-    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", "60-120", "--work", str(work), "--sensors", "ideal")
+    run = QuadsrPx4("--px4", str(PX4_DIR), "--instance", "60-120", "--work", str(work), "--sensors", "ideal",
+                    "--max-rtf", "2")
     instance = run.instance
     try:
         run.wait_for("is flying quadsr's SITL", 60.0)
@@ -75,7 +80,9 @@ def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
     assert len(estimate) > 100, f"{len(estimate)} position estimates in 10 s simulated (50 Hz expected)\n" \
         + _tails(work)
     worst = max(math.dist(p, (x0, y0, z0 - HOVER_ALT)) for p in estimate)
-    assert worst < HOVER_HELD, f"hover strayed {worst:.3f} m from ({x0:.2f}, {y0:.2f}, {z0 - HOVER_ALT:.2f})"
+    assert worst < HOVER_HELD, \
+        f"hover strayed {worst:.3f} m from ({x0:.2f}, {y0:.2f}, {z0 - HOVER_ALT:.2f}) " \
+        f"(PX4's ULog in {work / 'rootfs' / 'log'})\n{_tails(work)}"
     assert gcs.armed, f"disarmed while hovering\n{_tails(work)}"
     assert gcs.command(mav.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, math.nan, math.nan, math.nan) == \
         mav.MAV_RESULT_ACCEPTED

@@ -50,3 +50,12 @@ def test_bad_instance_ranges_are_user_errors(capsys):
         assert main(["px4", "--instance", bad]) == 2
         err = capsys.readouterr().err
         assert "--instance" in err and "Traceback" not in err, err
+
+
+def test_bad_paces_are_user_errors(capsys):
+    for flags, said in ((["--max-rtf", "0"], "--max-rtf must be a positive number"),
+                        (["--max-rtf", "nan"], "--max-rtf must be a positive number"),
+                        (["--max-rtf", "2", "--mode", "realtime"], "both set the pace")):
+        assert main(["px4", *flags]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err, err
