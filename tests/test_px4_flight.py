@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import signal
 import time
@@ -101,6 +102,9 @@ def test_px4_connects_arms_takes_off_hovers_lands_disarms(px4_flight):
     said = (work / "px4.log").read_text()
     assert "STALE" not in said and "switch from" not in said, said
     assert "Connection to ground station lost" not in said, said
+    # --max-rtf 2 held: each status interval (5 s wall) at most twice real time, 0.1 s of catch-up allowed
+    paces = [float(m) for m in re.findall(r" rtf=([0-9.]+) ", (work / "sitl.log").read_text())]
+    assert paces and max(paces) <= 2.1, f"real-time factors {paces} with --max-rtf 2"
 
 
 def test_px4_killed_mid_flight_stops_everything_with_a_clear_message(px4_flight):
