@@ -56,6 +56,8 @@ def load_dataset(
     segmentation finds airborne (default); windows: (start, end) log seconds to keep instead.
     What the segmentation kept and why rows were dropped: `dataset.segments` (lines to print).
     sensor_settings: the differentiator of sensor targets (logs with an IMU; a table brings its own targets).
+    Raw step targets (our .tlog with weak_form.RAW_SENSOR_TARGETS) come as two rows per step, the step's
+    Gauss nodes (Dataset.at_step_nodes).
     """
     if targets not in TARGET_SOURCES:
         raise UserError(f"targets must be one of {', '.join(TARGET_SOURCES)}, got {targets!r}")
@@ -74,7 +76,7 @@ def load_dataset(
             if evidence is not None:
                 raise_no_flight(f"flight log {path}", evidence)
         ds = kept
-    return ds
+    return ds.at_step_nodes()  # rows that are steps' means: two node rows each (weak_form.node_groups)
 
 
 def load_datasets(

@@ -441,6 +441,7 @@ def identify(
             "format": f.format,
             "rows": f.rows,
             "targets_from": f.target_source,
+            **({"rows_per_step": dataset.nodes} if dataset.nodes > 1 else {}),  # Dataset.at_step_nodes
         }
         for f in dataset.flights
     ]

@@ -228,6 +228,49 @@ def _node_deviations(
     return out[0], out[1]
 
 
+def step_node_offsets(
+    velocity: np.ndarray,
+    quaternion: np.ndarray,
+    rates: np.ndarray,
+    speeds: np.ndarray,
+    ratio: float,
+    xi_rows: np.ndarray,
+    u_rows: np.ndarray,
+) -> np.ndarray:
+    """(N-1, 2, 16): the state xi (12) and rotor speeds u (4) at the two Gauss nodes of each step, less the
+    step row's (step_interval_rows' xi_rows, u_rows).
+
+    Inputs per sample: velocity NED (m/s), quaternion (w, x, y, z) body FRD -> NED, body rates FRD (rad/s),
+    rotor speeds (rad/s); ratio the motors' lag ratio per step. The rotors' two speeds have the lag's step
+    mean and mean square (u_rows must be the RMS speeds); the rates and the body velocity lie on the chord
+    of their change over the step about the row's (_node_deviations); position and attitude stay the row's
+    (the body-frame physics does not read them within a step). A step-mean target is the mean of the
+    physics over the step's path: the two-node mean of any term is that mean to the chord's accuracy, where
+    the term at the row's state misses it by its curvature times the change within the step
+    (identification.weak_form.node_groups).
+    """
+    v, w, u = (np.asarray(a, dtype=float) for a in (velocity, rates, speeds))
+    ends = rotation_matrix(*euler_from_quaternions(np.asarray(quaternion, dtype=float)).T)
+    v_b = np.einsum("nji,nj->ni", ends, v)
+    r_row = rotation_matrix(xi_rows[:, 6], xi_rows[:, 7], xi_rows[:, 8])
+    out = np.zeros((len(xi_rows), 2, 16))
+    devs = _node_deviations(u[:-1], u[1:], u_rows, ratio, w[1:] - w[:-1], v_b[1:] - v_b[:-1])
+    for k, dev in enumerate(devs):
+        out[:, k, 3:6] = np.einsum("nij,nj->ni", r_row, dev[:, 7:10])
+        out[:, k, 9:12] = dev[:, 4:7]
+    # the rotors' nodes hold the lag's exact step mean of u and of u^2 (the thrust), the earlier node on the
+    # start's side: two-point quadrature of the exponential would miss the thrust by up to 1.5e-5 of it
+    r = float(ratio)
+    x = -np.log(r)
+    c = (u[1:] - r * u[:-1]) / (1.0 - r)
+    d = u[:-1] - c
+    mean = c + d * (1.0 - r) / x
+    spread = np.sqrt(np.maximum(np.asarray(u_rows, dtype=float) ** 2 - mean**2, 0.0)) * np.sign(d)
+    out[:, 0, 12:16] = mean + spread - u_rows
+    out[:, 1, 12:16] = mean - spread - u_rows
+    return out
+
+
 def _quadratic_basis(z: np.ndarray) -> np.ndarray:
     """1, z_i and z_i z_j (i <= j) of z (M,10: u1..u4, w, v_b), except the products of two different rotors'
     speeds: the columns of a local quadratic surrogate. A rotor's thrust and torques are its own; under a

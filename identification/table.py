@@ -9,7 +9,10 @@ Optional per-row side columns (`aux`, used by segmentation and the motor model, 
   (1 landed, 0 flying); armed (N,) the log's arming state (1 armed, 0 disarmed); accel_dev (N,) the
   largest | |specific force| - g | (m/s^2) around the row; ground_s (N,) the log time (s) from the row to
   the nearest log row where the vehicle rests on the ground (our .tlog: the SITL holds it on its ground
-  plane; inf: it never rests), so that segmentation can drop the lift-off and touch-down.
+  plane; inf: it never rests), so that segmentation can drop the lift-off and touch-down; step_nodes
+  (N,32) for rows that are steps' means (our .tlog's raw sensor targets): the state xi and rotor speeds u
+  at the step's two Gauss nodes less the row's (identification.step_targets.step_node_offsets), which
+  Dataset.at_step_nodes turns into two rows per step.
 Readers (identification.readers.*) build these; identification.dataset loads them from files.
 """
 
@@ -30,7 +33,7 @@ INPUT_NAMES = ("u1", "u2", "u3", "u4")
 TARGET_NAMES = ("ax", "ay", "az", "dwx", "dwy", "dwz")
 FORMATS = ("tlog", "ulog", "dataflash", "table")
 TARGET_SOURCES = ("truth", "sensors")
-AUX_NAMES = ("throttle", "voltage", "landed", "armed", "accel_dev", "ground_s")
+AUX_NAMES = ("throttle", "voltage", "landed", "armed", "accel_dev", "ground_s", "step_nodes")
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,8 @@ class Dataset:
     u_from_throttle: u is not measured but made from aux `throttle` by a thrust curve (motor_model).
     target_noise: per target (6, in TARGET_NAMES' order), its raw noise as a filter of the sensor's white
     noise along consecutive rows (identification.weak_noise), where the reader states it; None: not stated.
+    nodes: rows per step (at_step_nodes): consecutive rows with the same t are one step's Gauss nodes, each
+    with the step's target, and the step's value of any quantity is their mean (1: a row is a sample).
     """
 
     t: np.ndarray
@@ -77,6 +82,7 @@ class Dataset:
     u_from_throttle: bool = False
     gravity_estimates: list[tuple[str, float, float]] = field(default_factory=list)
     target_noise: tuple[tuple[float, ...] | None, ...] | None = None
+    nodes: int = 1
 
     def __post_init__(self) -> None:
         self.t = np.asarray(self.t, dtype=float).reshape(-1)
@@ -175,6 +181,29 @@ class Dataset:
             flights=flights,
             aux=aux,
             target_noise=noise.pop() if len(noise) == 1 else None,
+            nodes=max(d.nodes for d in datasets),
+        )
+
+    def at_step_nodes(self) -> Dataset:
+        """Each step row as its two Gauss-node rows (aux step_nodes: the node states less the row's), in order
+        and with the step's t and targets; the dataset itself when it has no step_nodes."""
+        if "step_nodes" not in self.aux:
+            return self
+        off = self.aux["step_nodes"].reshape(len(self), -1, 16)
+        k = off.shape[1]
+        finite = np.isfinite(off).all(axis=(1, 2))  # a flight concatenated without nodes: rows stay one
+        rep = np.where(finite, k, 1)
+        node = np.concatenate([np.arange(r) for r in rep]) if len(rep) else np.zeros(0, int)
+        src = np.repeat(np.arange(len(self)), rep)
+        dev = np.where(finite[src, None], off[src, np.minimum(node, k - 1)], 0.0)
+        flight = self.flight[src]
+        infos = [replace(f, rows=int(np.count_nonzero(flight == i))) for i, f in enumerate(self.flights)]
+        return replace(
+            self, t=self.t[src], xi=self.xi[src] + dev[:, :12], u=self.u[src] + dev[:, 12:],
+            targets=self.targets[src], flight=flight, flights=infos,
+            aux={n: v[src] for n, v in self.aux.items() if n != "step_nodes"},
+            drop_reasons=dict(self.drop_reasons), warnings=list(self.warnings), segments=list(self.segments),
+            nodes=k,
         )
 
     def split(self, holdout_fraction: float) -> tuple[Dataset, Dataset]:

@@ -82,11 +82,18 @@ def stacked_whitener(parts: list[Whitener | None]) -> Whitener | None:
 def raw_noise_operator(t: np.ndarray, flight: np.ndarray | None, stencil: tuple[float, ...]
                        ) -> sparse.csr_matrix:
     """B (N, P): raw rows' noise = B e with e white (P,), each contiguous run of a flight's rows (t s) on
-    its own samples, row k of a run the stencil's weights on samples k .. k + len(stencil) - 1."""
+    its own samples, row k of a run the stencil's weights on samples k .. k + len(stencil) - 1. Rows that
+    share a time within a flight are one sample's nodes (weak_form.node_groups): they share its noise."""
     t = np.asarray(t, dtype=float)
     n = len(t)
-    w = np.asarray(stencil, dtype=float)
     flights = np.zeros(n, dtype=int) if flight is None else np.asarray(flight)
+    key = np.column_stack((flights, t))
+    if n > 1 and len(np.unique(key, axis=0)) < n:
+        distinct, sample = np.unique(key, axis=0, return_inverse=True)
+        first = raw_noise_operator(distinct[:, 1], distinct[:, 0].astype(int), stencil)
+        pick = sparse.csr_matrix((np.ones(n), (np.arange(n), sample.ravel())), shape=(n, len(distinct)))
+        return (pick @ first).tocsr()
+    w = np.asarray(stencil, dtype=float)
     rows, cols, vals = [], [], []
     p = 0
     for f in np.unique(flights):

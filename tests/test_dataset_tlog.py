@@ -69,13 +69,14 @@ def test_sensor_targets_match_the_sitl_dynamics(flights):
 
 
 def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
-    """The weak form's raw sensor targets (RAW_SENSOR_TARGETS) of our .tlog: one row per 4 ms step at its
+    """The weak form's raw sensor targets (RAW_SENSOR_TARGETS) of our .tlog: one step per 4 ms step at its
     midpoint, the gyro's difference over the step (its exact mean derivative there). Integrated against the
     test functions they hold the SITL's dynamics at the rows several times better than the per-sample
     5-point derivative, whose stencil spans the kinks a held command's change leaves at a sample (measured
     on fang-chen-aero's 60 s paper-train flight, true model, weak RMS of wy': 3.5e-2 -> 6.9e-3 rad/s^2;
-    here 3.5e-2 -> 8.5e-3 on wx'). The specific force, no derivative, is its samples' mean over the step
-    plus the rotors' lag within it (here 3.9e-4 m/s^2 at most; the ends' average alone 1.7e-3)."""
+    here 3.5e-2 -> 8.5e-3 on wx'), and each step as two rows, its Gauss nodes, far better again (here
+    1.6e-4). The specific force, no derivative, is its samples' mean over the step plus the rotors' lag
+    within it (here 3.9e-4 m/s^2 at most; the ends' average alone 1.7e-3)."""
     from dataclasses import replace
 
     from identification.weak_form import RAW_SENSOR_TARGETS, WeakSettings, weak_rows
@@ -102,6 +103,18 @@ def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
     print("step intervals", ours, "samples", before)
     assert (ours[3:] < before[3:] / 3.0).all(), (ours, before)
     assert (ours[:3] < 1e-3).all(), ours
+    # each step is two rows at one time, its Gauss nodes (Dataset.at_step_nodes), whose mean is the step's:
+    # the physics at the steps' own rows (their mean state) misses the step means by the products' curvature
+    rows = segment(read_tlog_dataset(flights["train"], targets="sensors", gravity=g,
+                                     sensor_settings=RAW_SENSOR_TARGETS))
+    assert intervals.nodes == 2 and rows.nodes == 1 and len(intervals) == 2 * len(rows)
+    assert np.array_equal(intervals.t, np.repeat(rows.t, 2))
+    # the two rotor speeds hold the step's mean square, so the thrust, as the row's RMS speed does
+    assert np.allclose((intervals.u**2).reshape(-1, 2, 4).mean(axis=1), rows.u**2, rtol=1e-9, atol=1e-6)
+    at_rows = weak_error(rows)
+    print("node rows", ours, "step rows", at_rows)
+    # measured: wx' 8.5e-3 -> 1.6e-4, wy' 4.0e-3 -> 1.6e-4 rad/s^2 (wz' 1.9e-5 -> 1.3e-5: the rotors' u^2)
+    assert (ours[3:5] < at_rows[3:5] / 10.0).all() and ours[5] <= at_rows[5], (ours, at_rows)
 
 
 def test_rows_columns_and_provenance(flights):

@@ -9,7 +9,12 @@ import functools
 import numpy as np
 import pytest
 
-from identification.step_targets import lagged_rms_speed, motor_lag_ratio, step_interval_rows
+from identification.step_targets import (
+    lagged_rms_speed,
+    motor_lag_ratio,
+    step_interval_rows,
+    step_node_offsets,
+)
 from identification.targets import kink_aware_derivative
 
 DT = 0.004
@@ -56,6 +61,44 @@ def test_rms_speed_over_a_lagged_step_matches_quadrature():
     got = lagged_rms_speed(u0, path[-1], r)
     assert np.allclose(got, exact, rtol=1e-9), (got, exact)
     assert np.abs(got - 0.5 * (u0 + path[-1])).max() > 1.0  # the mean of the ends would be wrong
+
+
+def test_a_steps_two_nodes_hold_the_step_mean_of_a_product():
+    """A step's gyroscopic u_i w_z and rotor-drag u_i v_b have the step mean of the product, not the product
+    of the row's RMS speed and mean rate (off by several rad^2/s^2 where the command jumps): the mean over
+    the step's two Gauss nodes (step_node_offsets) holds it, and u_i^2 (the thrust) too."""
+    r = np.exp(-DT / TM)
+    commands = np.array([[700.0, 520.0, 100.0, 400.0], [520.0, 900.0, 400.0, 10.0]])  # rad/s, per step
+    u = [np.array([300.0, 550.0, 800.0, 20.0])]  # rad/s at the samples
+    for c in commands:
+        u.append(c + (u[-1] - c) * r)
+    u = np.array(u)
+    w = np.array([[1.0, -2.0, 3.0], [1.4, -2.6, 2.2], [0.9, -1.8, 2.9]])  # rad/s FRD: a chord per step
+    v = np.array([[2.0, 0.0, -1.0], [2.3, -0.1, -1.2], [2.1, 0.4, -1.0]])  # m/s: level, so v NED = v_b
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (3, 1))
+    u_rows = lagged_rms_speed(u[:-1], u[1:], r)
+    xi_rows = np.zeros((2, 12))
+    xi_rows[:, 3:6], xi_rows[:, 9:12] = 0.5 * (v[:-1] + v[1:]), 0.5 * (w[:-1] + w[1:])
+    off = step_node_offsets(v, quat, w, u, r, xi_rows, u_rows)
+    assert off.shape == (2, 2, 16) and not off[:, :, [0, 1, 2, 6, 7, 8]].any()
+    tau = np.linspace(0.0, 1.0, 20001)[:, None, None]
+    u_path = commands + (u[:-1] - commands) * r**tau  # (S, steps, 4)
+    w_path, v_path = w[:-1] + tau * (w[1:] - w[:-1]), v[:-1] + tau * (v[1:] - v[:-1])
+    products = {
+        "u_i wz": lambda u_, w_, v_: u_ * w_[..., 2:3],
+        "u_i vb": lambda u_, w_, v_: u_ * v_[..., 1:2],
+        "u_i^2": lambda u_, w_, v_: u_**2,
+    }
+    for name, f in products.items():
+        exact = np.trapezoid(f(u_path, w_path, v_path), tau[:, 0, 0], axis=0)
+        nodes = [f(u_rows + off[:, k, 12:], xi_rows[:, 9:12] + off[:, k, 9:12],
+                   xi_rows[:, 3:6] + off[:, k, 3:6]) for k in (0, 1)]
+        two = 0.5 * (nodes[0] + nodes[1])
+        row = f(u_rows, xi_rows[:, 9:12], xi_rows[:, 3:6])
+        assert np.abs(two - exact).max() < 0.02 * max(np.abs(row - exact).max(), 1.0), (name, two - exact,
+                                                                                          row - exact)
+        if name != "u_i^2":
+            assert np.abs(row - exact).max() > 2.0, (name, row - exact)
 
 
 def test_a_body_under_held_commands_gets_exact_interval_targets():

@@ -38,6 +38,25 @@ def test_operator_rows_are_weighted_means_inside_runs():
         weak_operator(t, WeakSettings(half_window_s=-1.0))
 
 
+def test_rows_sharing_a_time_are_one_samples_nodes():
+    """Two rows per step (Dataset.at_step_nodes: the step's Gauss nodes, one time): each window weighs the
+    step as it weighs one sample and shares that weight between its nodes, so V y of a target held on both
+    nodes is the steps' and V f of a quantity that differs between them is the steps' node means'."""
+    rng = np.random.default_rng(8)
+    t = np.concatenate((np.arange(400) * DT, 3.0 + np.arange(300) * DT))
+    steps = weak_operator(t, WeakSettings())
+    nodes = weak_operator(np.repeat(t, 2), WeakSettings())
+    assert nodes.shape == (steps.shape[0], 2 * len(t)) and np.allclose(nodes.sum(axis=1), 1.0)
+    y = rng.normal(size=len(t))
+    assert np.allclose(nodes @ np.repeat(y, 2), steps @ y)
+    a, b = rng.normal(size=len(t)), rng.normal(size=len(t))
+    assert np.allclose(nodes @ np.column_stack((a, b)).ravel(), steps @ (0.5 * (a + b)))
+    # per flight, as weak_rows builds it
+    both = weak_rows(np.repeat(np.r_[t[:400], t[:400]], 2), np.repeat([0, 1], 800), WeakSettings())
+    half = steps[: both.shape[0] // 2] @ y
+    assert np.allclose(both @ np.repeat(np.r_[y[:400], y[:400]], 2), np.tile(half, 2))
+
+
 @pytest.fixture(scope="module")
 def noisy_flight() -> tuple[Dataset, np.ndarray]:
     """(sensor-target Dataset with a noisy gyro, the true model's targets at its rows)."""

@@ -59,6 +59,21 @@ def test_raw_noise_operator_shares_samples_within_a_run_only():
     assert two.shape == (8, 10)
 
 
+def test_a_steps_node_rows_share_its_noise():
+    """Node rows (two per step, one time: Dataset.at_step_nodes) carry their step's raw target, so its noise:
+    the weak rows' covariance and whitener are those of the steps' rows, flight by flight."""
+    t = np.r_[np.arange(300) * DT, 2.0 + np.arange(200) * DT]
+    flight = np.r_[[0] * 300, [1] * 200]
+    b = raw_noise_operator(t, flight, STEP_DIFFERENCE)
+    b2 = raw_noise_operator(np.repeat(t, 2), np.repeat(flight, 2), STEP_DIFFERENCE)
+    assert np.allclose(b2.toarray()[::2], b.toarray()) and np.allclose(b2.toarray()[1::2], b.toarray())
+    v = weak_rows(t, flight, WeakSettings())
+    v2 = weak_rows(np.repeat(t, 2), np.repeat(flight, 2), WeakSettings())
+    w, w2 = (weak_whitener(v, t, flight, STEP_DIFFERENCE),
+             weak_whitener(v2, np.repeat(t, 2), np.repeat(flight, 2), STEP_DIFFERENCE))
+    assert w is not None and w2 is not None and np.allclose(w2.factor, w.factor)
+
+
 @pytest.mark.parametrize("stencil", [STEP_DIFFERENCE, STEP_MEAN, WHITE])
 def test_whitened_weak_noise_is_white_with_one_variance(stencil):
     rng = np.random.default_rng(3)

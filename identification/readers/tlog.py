@@ -20,7 +20,8 @@ RAW_SENSOR_TARGETS) of a log with rotor speeds and commands: one row per step in
 difference over the step (its exact mean derivative) and the accelerometer's mean over it (its two ends
 averaged plus what the rotors' lag adds within the step: _interval_specific_force), the regressors those of
 the truth targets' rows (identification.step_targets; not moved to the row state: that shift is fitted to
-the truth accelerations).
+the truth accelerations), and with them each step's path (aux `step_nodes`: the state at the step's two
+Gauss nodes), so that load_dataset can make each step two node rows whose mean is the step's.
 
 Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
 free-flight equations do not hold) are dropped (aux `ground_s`, each row's time from the nearest of them,
@@ -44,7 +45,7 @@ from bridge.tlog import read_tlog
 from identification.log_gravity import log_gravity
 from identification.readers import RowFilter, make_dataset, rotor_model
 from identification.segmentation import SegmentationSettings, seconds_to_nearest
-from identification.step_targets import motor_lag_ratio, step_interval_rows
+from identification.step_targets import motor_lag_ratio, step_interval_rows, step_node_offsets
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
@@ -290,9 +291,12 @@ def read_tlog_dataset(
                 f"midpoint under the held command (motor lag ratio {ratio:.6f} per step, estimated from the "
                 "log)"
             )
-            ground = {"ground_s": seconds_to_nearest(t_mid, rest_times)}
+            side = {"ground_s": seconds_to_nearest(t_mid, rest_times)}
+            if decimation == 1:  # each step's path: its rows become its two Gauss nodes (load_dataset)
+                side["step_nodes"] = step_node_offsets(vel, quat, rates, u, ratio, xi_mid, u_mid).reshape(
+                    len(t_mid), -1)
             ds = make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
-                              aux=ground)
+                              aux=side)
             if decimation == 1:  # consecutive rows share a sample: the targets' noise is correlated
                 ds.target_noise = (STEP_MEAN,) * 3 + (STEP_DIFFERENCE,) * 3
             return _with_gravity(ds, gravity_estimate)
