@@ -112,6 +112,14 @@ def lagged_rms_speed(u_start: np.ndarray, u_end: np.ndarray, ratio: float) -> np
     return np.sqrt(np.maximum(mean_sq, 0.0))
 
 
+def _lag_path(u_start: np.ndarray, u_end: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """(c, d, x): a step's lagged speed u(tau) = c + d exp(-x tau) (rad/s, tau in [0, 1]) from its ends
+    u_start, u_end (rad/s) and the lag ratio r = exp(-x) per step: c the held command's speed."""
+    r = float(ratio)
+    c = (u_end - r * u_start) / (1.0 - r)
+    return c, u_start - c, -np.log(r)
+
+
 def lagged_square_moments(
     u_start: np.ndarray, u_end: np.ndarray, ratio: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -123,9 +131,7 @@ def lagged_square_moments(
     _centred_moment(a) (zero for a constant), so the first moment is 2 c d J(x) + d^2 J(2x).
     """
     r = float(ratio)
-    x = -np.log(r)
-    c = (u_end - r * u_start) / (1.0 - r)
-    d = u_start - c
+    c, d, x = _lag_path(u_start, u_end, r)
     mean_sq = c * c + 2.0 * c * d * (1.0 - r) / x + d * d * (1.0 - r * r) / (2.0 * x)
     first = 2.0 * c * d * _centred_moment(x) + d * d * _centred_moment(2.0 * x)
     return mean_sq, first
@@ -219,8 +225,7 @@ def _node_deviations(
     body velocity on the chord of their change over the step (dw, dv_b: end minus start) about the row's
     step means (their curvature about the mean is orthogonal to what a product with a chord picks up)."""
     r = float(ratio)
-    c = (u_end - r * u_start) / (1.0 - r)
-    d = u_start - c
+    c, d, _ = _lag_path(u_start, u_end, r)
     out = []
     for tau in GAUSS_NODES:
         du = c + d * r**tau - u_row
@@ -261,9 +266,7 @@ def step_node_offsets(
     # the rotors' nodes hold the lag's exact step mean of u and of u^2 (the thrust), the earlier node on the
     # start's side: two-point quadrature of the exponential would miss the thrust by up to 1.5e-5 of it
     r = float(ratio)
-    x = -np.log(r)
-    c = (u[1:] - r * u[:-1]) / (1.0 - r)
-    d = u[:-1] - c
+    c, d, x = _lag_path(u[:-1], u[1:], r)
     mean = c + d * (1.0 - r) / x
     spread = np.sqrt(np.maximum(np.asarray(u_rows, dtype=float) ** 2 - mean**2, 0.0)) * np.sign(d)
     out[:, 0, 12:16] = mean + spread - u_rows
