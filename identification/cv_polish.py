@@ -26,6 +26,14 @@ mixer's sign pattern nearest their coefficients, alone or beside the rotors' sum
 closed-loop realistic-sensor fang-chen-aero (seed 5) dwx held wz u2^2 and wz (u1^2 + u2^2 + u3^2 - u4^2)
 (VIF 77), where the SITL has wz (u1 - u2 + u3 - u4) and a small common part; the merged pair has the lower
 cross-validated loss and a VIF of 2.
+Each round also moves on from up to `beam` models of the last round's moves that are better than the pick
+and no larger, yet not picked (SelectionSettings.cv_polish_beam), best first: their one-term moves and
+rotor-power twins are scored as the pick's, and any of them the rule can pick joins the candidates. The
+rule rejects a model whose terms are tied (unidentified), and the way from the pick to a better model may
+pass through such models: on realistic-sensor fang-chen-aero (seed 23) fy's pick held the rotors' sum for
+the constant (the accelerometer's bias) and wx + wx (u1^2 + .. + u4^2) for wx (u1 + .. + u4); the true
+structure, smaller and better, was several moves away, and every model between was better than the pick
+and not identified (the rotors' sum, or its root, beside wx sum(u)), so a polish of the pick alone stopped.
 """
 
 from __future__ import annotations
@@ -74,18 +82,19 @@ def polish_by_cross_validation(
     rounds: int = 4,
     engine: str = "cv-polish",
     extra: Sequence[sympy.Expr] = (),
+    beam: int = 0,
 ) -> Candidate:
     """The pick after up to `rounds` rounds of one-term moves (module docstring); the moves that could be
     picked (within the pick's tolerance of the best) are appended to `candidates`. mark: sets the new
     candidates' self-feedback (identification.self_feedback on the fit rows). extra: terms the moves may
     use beside every candidate's (the engine's shape twins of the pick's terms)."""
     with single_threaded_blas():  # small solves: BLAS threads only contend
-        return _polish(chosen, candidates, folded, kind, selection, mark, rounds, engine, extra)
+        return _polish(chosen, candidates, folded, kind, selection, mark, rounds, engine, extra, beam)
 
 
 def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, kind: str,
             selection: SelectionSettings, mark: Callable[[list[Candidate]], None], rounds: int,
-            engine: str, extra: Sequence[sympy.Expr] = ()) -> Candidate:
+            engine: str, extra: Sequence[sympy.Expr] = (), beam: int = 0) -> Candidate:
     if chosen.holdout_loss is None or not np.isfinite(chosen.holdout_loss):
         return chosen  # nothing scored: no tolerance to compare moves against
     pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
@@ -101,25 +110,18 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     pool = {s: s for s in distinct.values()}
     folded.prepare(list(pool.values()))
     scale = folded.scale
+    expanded: set[frozenset[sympy.Expr]] = set()
+    frontier: list[list[sympy.Expr]] = []
     for _ in range(rounds):
         current = term_shapes(chosen.expression)
-        have = set(current)
-        others = [p for p in pool.values() if p not in have]
-        folded.include(current)
-        batch = folded.move_losses(current, others, kind)  # the one-term moves' losses at once
-        moves = _moves(current, others)
-        known = _batch_values(batch, len(current), len(others), len(moves))
-        moves += rotor_power_twins(current) + rotor_patterns(chosen.expression, current)
+        states = [current, *[f for f in frontier if _key(f) != _key(current)][:beam]]
         scored = []
-        for m, shapes in enumerate(moves):
-            key = _key(shapes)
-            if key in seen:
+        for state in states:
+            if _key(state) in expanded:
                 continue
-            seen.add(key)
-            value = known[m] if m < len(known) and np.isfinite(known[m]) else (
-                folded.terms_loss(shapes, kind) if shapes else float("inf"))
-            if np.isfinite(value):
-                scored.append((value, shapes))
+            expanded.add(_key(state))
+            expression = chosen.expression if state is current else None
+            scored += _scored_moves(state, expression, pool, folded, kind, seen)
         # a move the pick can choose is within its tolerance of the best identified loss, which is at most
         # the current pick's (whether a move is identified is measured only when the pick asks), and not
         # worse than the pick beyond the rows' noise
@@ -128,15 +130,53 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
         new = [c for value, shapes in scored if value <= limit
                and not _worse(folded, shapes, base, value, float(chosen.holdout_loss), kind, z)
                and (c := move_candidate(shapes, value, folded, kind, engine)) is not None]
-        if not new:
+        if new:
+            mark(new)
+            candidates.extend(new)
+            chosen = select(candidates, selection, scale=scale, by_degree=True)
+        # better than the pick and no larger, yet not picked (tied terms, unidentified): the way to a better
+        # model the rule can pick may pass through it, so its moves are tried next
+        size, loss_now = model_size(term_shapes(chosen.expression)), float(chosen.holdout_loss)
+        frontier = [shapes for value, shapes in sorted(scored, key=lambda vs: vs[0])
+                    if value < loss_now and model_size(shapes) <= size and _key(shapes) not in expanded
+                    and _key(shapes) != _key(term_shapes(chosen.expression))]
+        if _key(term_shapes(chosen.expression)) in expanded and not frontier[:beam]:
             return chosen
-        mark(new)
-        candidates.extend(new)
-        again = select(candidates, selection, scale=scale, by_degree=True)
-        if again is chosen:
-            return chosen
-        chosen = again
     return chosen
+
+
+def _scored_moves(current: list[sympy.Expr], expression: sympy.Expr | None,
+                  pool: dict[sympy.Expr, sympy.Expr], folded: FoldedRows, kind: str,
+                  seen: set[frozenset[sympy.Expr]]) -> list[tuple[float, list[sympy.Expr]]]:
+    """The cross-validated loss of each move from the model `current` not seen before: one-term moves over
+    the pool, rotor-power twins and, given its fitted `expression`, rotor patterns; seen is updated."""
+    have = set(current)
+    others = [p for p in pool.values() if p not in have]
+    folded.include(current)
+    batch = folded.move_losses(current, others, kind)  # the one-term moves' losses at once
+    moves = _moves(current, others)
+    known = _batch_values(batch, len(current), len(others), len(moves))
+    moves += rotor_power_twins(current)
+    if expression is not None:
+        moves += rotor_patterns(expression, current)
+    return _scored(moves, list(known), folded, kind, seen)
+
+
+def _scored(moves: list[list[sympy.Expr]], known: list[float], folded: FoldedRows, kind: str,
+            seen: set[frozenset[sympy.Expr]]) -> list[tuple[float, list[sympy.Expr]]]:
+    """(cross-validated loss, terms) of each move not seen before with a finite loss (known[m] where
+    finite, else scored here); seen is updated."""
+    scored = []
+    for m, shapes in enumerate(moves):
+        key = _key(shapes)
+        if key in seen:
+            continue
+        seen.add(key)
+        value = known[m] if m < len(known) and np.isfinite(known[m]) else (
+            folded.terms_loss(shapes, kind) if shapes else float("inf"))
+        if np.isfinite(value):
+            scored.append((value, shapes))
+    return scored
 
 
 def _worse(folded: FoldedRows, shapes: list[sympy.Expr], base: np.ndarray, value: float, current: float,
@@ -152,9 +192,14 @@ def _key(shapes: Sequence[sympy.Expr]) -> frozenset[sympy.Expr]:
     return frozenset(shapes)
 
 
+def _removals(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
+    """The model with each of its terms removed."""
+    return [current[:i] + current[i + 1:] for i in range(len(current))]
+
+
 def _moves(current: list[sympy.Expr], others: list[sympy.Expr]) -> list[list[sympy.Expr]]:
     """Each term removed, swapped for a term of others (not in current), and each of others added."""
-    out = [current[:i] + current[i + 1:] for i in range(len(current))]
+    out = _removals(current)
     out += [current[:i] + [p] + current[i + 1:] for i in range(len(current)) for p in others]
     out += [[*current, p] for p in others]
     return out

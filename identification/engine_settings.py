@@ -265,6 +265,16 @@ class SelectionSettings:
     # law fits nearly as well, so the screening takes it (closed-loop realistic-sensor fang-chen-aero, seed
     # 19: fz held -0.008/h^2 and its constant, the accelerometer's bias, 42 % off); false: none
     cv_polish_thrust_twins: bool = True
+    # the cross-validated polish also moves on from this many models per round that are better than the pick
+    # and no larger yet not picked (tied terms: unidentified), lowest loss first: the way to a better model
+    # the rule can pick may pass through such models, which a polish of the pick alone never reaches.
+    # Realistic-sensor fang-chen-aero (seed 23) fy: sum(u) stood for the constant and wx + wx sum(u^2) for
+    # wx sum(u), and every model between the pick and the true one was unidentified. 0: the pick's moves
+    # alone (before session 51; bench/settings/polish-pick-alone.yaml)
+    cv_polish_beam: int = 2
+    # the polish stops when its pick stays and no such model is left to move on from, or after this many
+    # rounds (4 before session 51, when each round moved from the pick alone)
+    cv_polish_rounds: int = 8
     # the chosen structure's refit (on the fit and pick rows) by generalised least squares where the rows
     # are weak and the log states its targets' raw noise (identification.weak_noise): the weak rows' noise
     # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate
@@ -315,6 +325,12 @@ def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
     if settings.selection.cv_blocks_per_fold < 1:
         raise UserError(f"{where}: key 'selection.cv_blocks_per_fold': must be 1 or more",
                         hint="the blocks each fold holds out, spread over the flight")
+    if settings.selection.cv_polish_rounds < 0:
+        raise UserError(f"{where}: key 'selection.cv_polish_rounds': must be 0 or more",
+                        hint="the most rounds of moves the polish makes, e.g. 8")
+    if settings.selection.cv_polish_beam < 0:
+        raise UserError(f"{where}: key 'selection.cv_polish_beam': must be 0 or more",
+                        hint="the models beside the pick the polish moves on from per round, e.g. 2")
     if not settings.selection.report_relative_se > 0:
         raise UserError(f"{where}: key 'selection.report_relative_se': must be above 0",
                         hint="the fraction of a coefficient its standard error may reach unnamed, e.g. 0.1")

@@ -321,7 +321,9 @@ def identify(
                 extra += [t for t in thrust_twins(current) if t not in extra]
             chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
                                                 functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
-                                                                  target=name), extra=extra)
+                                                                  target=name), extra=extra,
+                                                rounds=settings.selection.cv_polish_rounds,
+                                                beam=settings.selection.cv_polish_beam)
         flag = _excitation(name, candidates, (X[ok], y[ok]), loss, ops, settings, score)
         if flag is not None:
             chosen, line, out["not_excited"] = flag
