@@ -87,7 +87,8 @@ def polish_by_cross_validation(
     """The pick after up to `rounds` rounds of one-term moves (module docstring); the moves that could be
     picked (within the pick's tolerance of the best) are appended to `candidates`. mark: sets the new
     candidates' self-feedback (identification.self_feedback on the fit rows). extra: terms the moves may
-    use beside every candidate's (the engine's shape twins of the pick's terms)."""
+    use beside every candidate's (the engine's shape twins of the pick's terms). beam: the models better
+    than the pick, no larger and not picked, that each round also moves on from (0: the pick alone)."""
     with single_threaded_blas():  # small solves: BLAS threads only contend
         return _polish(chosen, candidates, folded, kind, selection, mark, rounds, engine, extra, beam)
 
@@ -148,8 +149,9 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
 def _scored_moves(current: list[sympy.Expr], expression: sympy.Expr | None,
                   pool: dict[sympy.Expr, sympy.Expr], folded: FoldedRows, kind: str,
                   seen: set[frozenset[sympy.Expr]]) -> list[tuple[float, list[sympy.Expr]]]:
-    """The cross-validated loss of each move from the model `current` not seen before: one-term moves over
-    the pool, rotor-power twins and, given its fitted `expression`, rotor patterns; seen is updated."""
+    """(cross-validated loss, terms) of each move from the model `current` not seen before, with a finite
+    loss: one-term moves over the pool, rotor-power twins and, given its fitted `expression`, rotor
+    patterns; seen is updated."""
     have = set(current)
     others = [p for p in pool.values() if p not in have]
     folded.include(current)
@@ -159,13 +161,6 @@ def _scored_moves(current: list[sympy.Expr], expression: sympy.Expr | None,
     moves += rotor_power_twins(current)
     if expression is not None:
         moves += rotor_patterns(expression, current)
-    return _scored(moves, list(known), folded, kind, seen)
-
-
-def _scored(moves: list[list[sympy.Expr]], known: list[float], folded: FoldedRows, kind: str,
-            seen: set[frozenset[sympy.Expr]]) -> list[tuple[float, list[sympy.Expr]]]:
-    """(cross-validated loss, terms) of each move not seen before with a finite loss (known[m] where
-    finite, else scored here); seen is updated."""
     scored = []
     for m, shapes in enumerate(moves):
         key = _key(shapes)
@@ -192,14 +187,9 @@ def _key(shapes: Sequence[sympy.Expr]) -> frozenset[sympy.Expr]:
     return frozenset(shapes)
 
 
-def _removals(current: list[sympy.Expr]) -> list[list[sympy.Expr]]:
-    """The model with each of its terms removed."""
-    return [current[:i] + current[i + 1:] for i in range(len(current))]
-
-
 def _moves(current: list[sympy.Expr], others: list[sympy.Expr]) -> list[list[sympy.Expr]]:
     """Each term removed, swapped for a term of others (not in current), and each of others added."""
-    out = _removals(current)
+    out = [current[:i] + current[i + 1:] for i in range(len(current))]
     out += [current[:i] + [p] + current[i + 1:] for i in range(len(current)) for p in others]
     out += [[*current, p] for p in others]
     return out
