@@ -207,7 +207,8 @@ class Dataset:
         )
 
     def split(self, holdout_fraction: float) -> tuple[Dataset, Dataset]:
-        """(train, holdout): the last holdout_fraction of each flight's rows (in time) is held out."""
+        """(train, holdout): the last holdout_fraction of each flight's rows (in time) is held out; rows of
+        one time (a step's node rows: at_step_nodes) stay on one side, the cut at the first such time."""
         if not (0.0 < holdout_fraction < 1.0):
             raise UserError(f"holdout fraction must be between 0 and 1 (exclusive), got {holdout_fraction}")
         hold = np.zeros(len(self), dtype=bool)
@@ -217,7 +218,9 @@ class Dataset:
                 continue
             idx = idx[np.argsort(self.t[idx], kind="stable")]
             n_hold = min(max(int(round(holdout_fraction * len(idx))), 1), len(idx) - 1)
-            hold[idx[len(idx) - n_hold :]] = True
+            t = self.t[idx]
+            first = int(np.searchsorted(t, t[len(idx) - n_hold], side="left"))
+            hold[idx[max(first, 1):]] = True
         return self.select(~hold), self.select(hold)
 
     def to_csv(self, path: str | Path) -> Path:

@@ -109,6 +109,9 @@ def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
                                      sensor_settings=RAW_SENSOR_TARGETS))
     assert intervals.nodes == 2 and rows.nodes == 1 and len(intervals) == 2 * len(rows)
     assert np.array_equal(intervals.t, np.repeat(rows.t, 2))
+    for fraction in (0.2, 0.25, 0.3):  # a held-out block never takes one node of a step and not the other
+        train, hold = intervals.split(fraction)
+        assert train.t.max() < hold.t.min() and len(train) % 2 == 0 and len(hold) % 2 == 0, fraction
     # the two rotor speeds hold the step's mean square, so the thrust, as the row's RMS speed does
     assert np.allclose((intervals.u**2).reshape(-1, 2, 4).mean(axis=1), rows.u**2, rtol=1e-9, atol=1e-6)
     at_rows = weak_error(rows)
