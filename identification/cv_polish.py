@@ -137,11 +137,12 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             chosen = select(candidates, selection, scale=scale, by_degree=True)
         # better than the pick and no larger, yet not picked (tied terms, unidentified): the way to a better
         # model the rule can pick may pass through it, so its moves are tried next
-        size, loss_now = model_size(term_shapes(chosen.expression)), float(chosen.holdout_loss)
+        picked = term_shapes(chosen.expression)
+        size, loss_now, key_now = model_size(picked), float(chosen.holdout_loss), _key(picked)
         frontier = [shapes for value, shapes in sorted(scored, key=lambda vs: vs[0])
                     if value < loss_now and model_size(shapes) <= size and _key(shapes) not in expanded
-                    and _key(shapes) != _key(term_shapes(chosen.expression))]
-        if _key(term_shapes(chosen.expression)) in expanded and not frontier[:beam]:
+                    and _key(shapes) != key_now]
+        if key_now in expanded and not frontier[:beam]:
             return chosen
     return chosen
 
