@@ -147,8 +147,7 @@ class LeastSquaresProblem:
             if info == 0:
                 x = rinv @ t[:k, k]
                 return x * x / np.sum(rinv * rinv, axis=1)
-        base = self.rss(idx)  # the slow, exact way
-        return np.array([self.rss(np.delete(idx, j)) - base for j in range(k)])
+        return dependent_removal_costs(r, t[:k, k])
 
     def subset_factor(self, idx: np.ndarray) -> np.ndarray:
         """The triangular factor (at most k+1 rows) of [M | z] for M the reduced columns idx (k of them) and
@@ -201,6 +200,33 @@ class LeastSquaresProblem:
         out = np.zeros_like(coef)
         out[idx] = best_x / self.size[idx]
         return out
+
+
+# singular values of a term set's factor at or below this fraction of the largest: dependent columns
+RANK_TOLERANCE = 1e-10
+
+
+def dependent_removal_costs(r: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """removal_costs where the columns are (nearly) dependent, from their triangular factor r (k, k) and
+    w = Q^T z (k,): 0 for a column in a dependency (the others span it: without it the fit is the same),
+    else x_j^2 / [G^+]_jj with x the minimum-norm solution and G^+ the pseudo-inverse of the columns' Gram
+    matrix (what the full-rank formula is on the columns' independent part). One SVD of r (k x k), where
+    k least-squares refits of the tall columns took minutes on a short flight's hundreds of dependent
+    features, and whose near-zero costs were rounding: which dependent column went first was the
+    arithmetic's last bits."""
+    k = r.shape[1]
+    if k == 0:
+        return np.zeros(0)
+    u, sv, vt = np.linalg.svd(r)
+    rank = int(np.sum(sv > RANK_TOLERANCE * sv[0])) if sv.size and sv[0] > 0 else 0
+    v = vt[:rank].T / sv[:rank]  # V_r S_r^-1 (k, rank): r^+ = V_r S_r^-1 U_r^T
+    x = v @ (u[:, :rank].T @ w)
+    diag = np.sum(v * v, axis=1)  # diag of G^+ = r^+ r^+^T
+    null = vt[rank:].T  # (k, k - rank): the columns' dependencies
+    in_dependency = np.linalg.norm(null, axis=1) > 1e-6
+    with np.errstate(divide="ignore", invalid="ignore"):
+        costs = np.where(diag > 0.0, x * x / np.where(diag > 0.0, diag, 1.0), 0.0)
+    return np.where(in_dependency, 0.0, costs)
 
 
 def lstsq_by_qr(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -257,7 +283,10 @@ def backward_path(problem: LeastSquaresProblem, active: np.ndarray) -> list[np.n
         out.append(current)
         if idx.size == 1:
             break
-        j = int(np.argmin(problem.removal_costs(idx, factor)))
+        costs = problem.removal_costs(idx, factor)
+        # of dependent terms (cost 0) the last goes first: the pool lists the simpler features first
+        zero = np.flatnonzero(costs == 0.0)
+        j = int(zero[-1]) if zero.size else int(np.argmin(costs))
         idx = np.delete(idx, j)
         # the factor without column j, by Givens rotations (O(k^2)) rather than a new QR (O(p k^2))
         rows = factor.shape[0]

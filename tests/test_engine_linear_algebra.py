@@ -170,3 +170,32 @@ def test_the_batched_combination_test_equals_one_solve_per_feature():
     coefs_d, rests_d = lstsq_by_qr(Ad, V)
     assert np.allclose(rests_d, rests, atol=1e-10)
     assert np.allclose(Ad @ coefs_d, A @ coefs, atol=1e-9)
+
+
+def _rank_aware_rss(a: np.ndarray, y: np.ndarray) -> float:
+    """The least-squares residual sum of squares of y on a's columns, dependent columns counted once."""
+    u, s, _ = np.linalg.svd(a, full_matrices=False)
+    q = u[:, : int(np.sum(s > 1e-10 * s[0]))].T @ y
+    return float(y @ y - q @ q)
+
+
+def test_removal_costs_of_dependent_columns_are_the_refits_differences():
+    """Where some columns are combinations of others, each column's removal cost is what the fit loses
+    without it: 0 for every column of a dependency (the others span it), the refit's rise for the rest."""
+    rng = np.random.default_rng(1)
+    n, p = 500, 30
+    theta = rng.normal(size=(n, p))
+    theta[:, 7] = theta[:, 2] - 0.5 * theta[:, 11]
+    theta[:, 20] = 3.0 * theta[:, 4]
+    y = theta[:, :10] @ rng.normal(size=10) + 0.1 * rng.normal(size=n)
+    problem = LeastSquaresProblem(theta, y)
+    idx = np.arange(p)
+    costs = problem.removal_costs(idx)
+    base = _rank_aware_rss(problem.scaled, y)
+    exact = np.array([_rank_aware_rss(np.delete(problem.scaled, j, axis=1), y) - base for j in range(p)])
+    assert np.allclose(costs, exact, rtol=1e-6, atol=1e-9 * float(y @ y)), np.c_[costs, exact]
+    assert set(np.flatnonzero(costs == 0.0)) == {2, 4, 7, 11, 20}
+    assert costs[0] > 100.0  # a true term: its removal costs the fit
+    # the backward path drops a dependency's last column first, and keeps the fit until none is left
+    first = backward_path(problem, np.ones(p, bool))[1]
+    assert not first[20] and first[4] and first.sum() == p - 1
