@@ -142,7 +142,7 @@ class LeastSquaresProblem:
         t = self.subset_factor(idx) if factor is None else factor
         r = t[:k, :k]
         diag = np.abs(np.diag(r))
-        if not (diag.size == 0 or diag.min() <= 1e-10 * diag.max()):  # else dependent columns
+        if not (diag.size == 0 or diag.min() <= RANK_TOLERANCE * diag.max()):  # else dependent columns
             rinv, info = scipy.linalg.lapack.dtrtri(r, lower=0)
             if info == 0:
                 x = rinv @ t[:k, k]
@@ -211,9 +211,9 @@ def dependent_removal_costs(r: np.ndarray, w: np.ndarray) -> np.ndarray:
     w = Q^T z (k,): 0 for a column in a dependency (the others span it: without it the fit is the same),
     else x_j^2 / [G^+]_jj with x the minimum-norm solution and G^+ the pseudo-inverse of the columns' Gram
     matrix (what the full-rank formula is on the columns' independent part). One SVD of r (k x k), where
-    k least-squares refits of the tall columns took minutes on a short flight's hundreds of dependent
-    features, and whose near-zero costs were rounding: which dependent column went first was the
-    arithmetic's last bits."""
+    one QR refit per column had taken 85 s of a 4 s flight's identify, and a QR of dependent columns spans
+    directions they do not: those refits fitted z along them (costs off by more than the residual), and
+    which dependent column went first was the arithmetic's last bits."""
     k = r.shape[1]
     if k == 0:
         return np.zeros(0)
@@ -223,6 +223,8 @@ def dependent_removal_costs(r: np.ndarray, w: np.ndarray) -> np.ndarray:
     x = v @ (u[:, :rank].T @ w)
     diag = np.sum(v * v, axis=1)  # diag of G^+ = r^+ r^+^T
     null = vt[rank:].T  # (k, k - rank): the columns' dependencies
+    # a column with a share in some dependency: its null-space entries are O(1) (a null vector is unit),
+    # rounding's 1e-12 elsewhere
     in_dependency = np.linalg.norm(null, axis=1) > 1e-6
     with np.errstate(divide="ignore", invalid="ignore"):
         costs = np.where(diag > 0.0, x * x / np.where(diag > 0.0, diag, 1.0), 0.0)

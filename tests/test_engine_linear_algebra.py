@@ -196,6 +196,6 @@ def test_removal_costs_of_dependent_columns_are_the_refits_differences():
     assert np.allclose(costs, exact, rtol=1e-6, atol=1e-9 * float(y @ y)), np.c_[costs, exact]
     assert set(np.flatnonzero(costs == 0.0)) == {2, 4, 7, 11, 20}
     assert costs[0] > 100.0  # a true term: its removal costs the fit
-    # the backward path drops a dependency's last column first, and keeps the fit until none is left
+    # the backward path's first step drops a dependency's last column (20), not its other member (4)
     first = backward_path(problem, np.ones(p, bool))[1]
     assert not first[20] and first[4] and first.sum() == p - 1
