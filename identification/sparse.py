@@ -202,7 +202,8 @@ class LeastSquaresProblem:
         return out
 
 
-# singular values of a term set's factor at or below this fraction of the largest: dependent columns
+# a term set's factor with a pivot (removal_costs) or singular value (dependent_removal_costs) at or below
+# this fraction of the largest: dependent columns
 RANK_TOLERANCE = 1e-10
 
 
