@@ -129,7 +129,7 @@ class LeastSquaresProblem:
         z = self._z_u
         if idx.size == 0:
             return self._y2
-        q = np.linalg.qr(self._r_u[:, idx], mode="reduced")[0]
+        q = range_basis(self._r_u[:, idx])
         resid = z - q @ (q.T @ z)
         return float(resid @ resid) + self._y2 - float(z @ z)
 
@@ -160,7 +160,7 @@ class LeastSquaresProblem:
         z = self._z_u
         cols = self._r_u[:, candidates]
         if idx.size:
-            q = np.linalg.qr(self._r_u[:, idx], mode="reduced")[0]
+            q = range_basis(self._r_u[:, idx])
             resid = z - q @ (q.T @ z)
             cols = cols - q @ (q.T @ cols)
         else:
@@ -202,9 +202,22 @@ class LeastSquaresProblem:
         return out
 
 
-# a term set's factor with a pivot (removal_costs) or singular value (dependent_removal_costs) at or below
-# this fraction of the largest: dependent columns
+# a term set's factor with a pivot (removal_costs, range_basis) or singular value (dependent_removal_costs,
+# range_basis) at or below this fraction of the largest: dependent columns
 RANK_TOLERANCE = 1e-10
+
+
+def range_basis(m: np.ndarray) -> np.ndarray:
+    """An orthonormal basis (n, rank) of m's column space: QR's Q when m's columns are independent, SVD's
+    leading left vectors otherwise (a QR of dependent columns is still k orthonormal columns, the extra ones
+    along rounding directions m does not span, and projections onto it fit the target along them too)."""
+    q, r = np.linalg.qr(m, mode="reduced")
+    diag = np.abs(np.diag(r))
+    if diag.size == 0 or diag.min() > RANK_TOLERANCE * diag.max():
+        return q
+    u, sv, _ = np.linalg.svd(m, full_matrices=False)
+    rank = int(np.sum(sv > RANK_TOLERANCE * sv[0])) if sv[0] > 0 else 0
+    return u[:, :rank]
 
 
 def dependent_removal_costs(r: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -321,7 +334,9 @@ def forward_path(
         while idx.size > 1:
             costs = problem.removal_costs(idx)
             costs[idx == new] = np.inf
-            k = int(np.argmin(costs))
+            # of dependent terms (cost 0) the one latest in the pool's order goes, as in backward_path
+            zero = np.flatnonzero(costs == 0.0)
+            k = int(zero[np.argmax(idx[zero])]) if zero.size else int(np.argmin(costs))
             if costs[k] > prune * max(problem.rss(idx), 1e-300):
                 break
             idx = np.delete(idx, k)

@@ -11,7 +11,10 @@
   constant, with row weights and with features of large mean;
 - lstsq_by_qr equals SVD least squares, also on dependent columns;
 - the pool's combination test factorises once for every pending feature (lstsq_by_qr with a matrix of
-  right-hand sides): the coefficients and the rests of one least-squares solve per feature.
+  right-hand sides): the coefficients and the rests of one least-squares solve per feature;
+- a term set with dependent columns: each column's removal cost, the set's residual and each candidate's
+  gain are those of rank-aware least squares (its dependencies counted once); the backward and forward
+  paths drop a dependency's latest column first.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from identification.discovery import _Basis
-from identification.sparse import LeastSquaresProblem, backward_path, lstsq_by_qr
+from identification.sparse import LeastSquaresProblem, backward_path, forward_path, lstsq_by_qr
 
 
 def _columns(seed: int, n: int = 600) -> np.ndarray:
@@ -199,3 +202,26 @@ def test_removal_costs_of_dependent_columns_are_the_refits_differences():
     # the backward path's first step drops a dependency's last column (20), not its other member (4)
     first = backward_path(problem, np.ones(p, bool))[1]
     assert not first[20] and first[4] and first.sum() == p - 1
+
+
+def test_residuals_and_gains_of_a_dependent_term_set_count_its_dependencies_once():
+    """A term set with dependent columns (a forward path started from a model found before) has the
+    residual of its independent part, and a candidate's gain is what it takes off that residual; the
+    forward path's pruning drops a dependency's latest columns first."""
+    rng = np.random.default_rng(2)
+    n, p = 400, 30
+    theta = rng.normal(size=(n, p))
+    theta[:, 2] = theta[:, 0] + theta[:, 1]
+    theta[:, 5] = 2.0 * theta[:, 3] - theta[:, 4]
+    y = theta[:, :6] @ rng.normal(size=6) + rng.normal(size=n)
+    problem = LeastSquaresProblem(theta, y)
+    idx = np.arange(6)
+    base = _rank_aware_rss(theta[:, idx], y)
+    assert abs(problem.rss(idx) - base) <= 1e-9 * base, (problem.rss(idx), base)
+    pool = np.arange(6, p)
+    gains = problem.addition_gains(idx, pool)
+    exact = np.array([base - _rank_aware_rss(theta[:, np.r_[idx, j]], y) for j in pool])
+    assert np.allclose(gains, exact, rtol=1e-8, atol=1e-9 * base), np.c_[gains, exact]
+    first = forward_path(problem, np.ones(p, bool), 8, initial=idx)[0]
+    kept = set(np.flatnonzero(first))
+    assert {0, 1, 3, 4} <= kept and not kept & {2, 5}, sorted(kept)
