@@ -112,6 +112,9 @@ def test_raw_sensor_targets_of_the_weak_form_are_step_intervals(flights):
     for fraction in (0.2, 0.25, 0.3):  # a held-out block never takes one node of a step and not the other
         train, hold = intervals.split(fraction)
         assert train.t.max() < hold.t.min() and len(train) % 2 == 0 and len(hold) % 2 == 0, fraction
+    # also where the cut falls at the flight's first time (3 steps, 90 % held): that step's rows stay in train
+    train, hold = intervals.select(slice(0, 6)).split(0.9)
+    assert len(train) == 2 and len(hold) == 4 and train.t.max() < hold.t.min(), (train.t, hold.t)
     # the two rotor speeds hold the step's mean square, so the thrust, as the row's RMS speed does
     assert np.allclose((intervals.u**2).reshape(-1, 2, 4).mean(axis=1), rows.u**2, rtol=1e-9, atol=1e-6)
     at_rows = weak_error(rows)
