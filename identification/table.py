@@ -220,7 +220,7 @@ class Dataset:
             n_hold = min(max(int(round(holdout_fraction * len(idx))), 1), len(idx) - 1)
             t = self.t[idx]
             first = int(np.searchsorted(t, t[len(idx) - n_hold], side="left"))
-            if first == 0:  # the cut at the flight's first time: its rows stay in train, the next time on held
+            if first == 0:  # the cut at the flight's first time: its rows stay in train
                 first = int(np.searchsorted(t, t[0], side="right"))
             hold[idx[first:]] = True
         return self.select(~hold), self.select(hold)
