@@ -80,9 +80,27 @@ def _monomial(gens: Sequence[sympy.Expr], exponents: Sequence[int], which: Seque
     return sympy.Mul(*[gens[k] ** exponents[k] for k in which if exponents[k]])
 
 
+def _has_root_or_quotient(node: sympy.Expr) -> bool:
+    """Whether a power of a variable's expression other than a non-negative integer one (a root, a quotient)
+    sits outside every function's argument: then the expression is shown as sympy prints it. A model's
+    expressions are sums of features times the rotation's entries, so no expansion cancels such a power;
+    one that would (x (y + 1/x)) is shown as printed too."""
+    if isinstance(node, sympy.Function):
+        return False
+    if isinstance(node, sympy.Pow) and node.base.free_symbols:
+        exp = node.exp
+        if not (exp.is_Integer and exp >= 0):
+            return True
+    return any(_has_root_or_quotient(a) for a in node.args)
+
+
 @functools.lru_cache(maxsize=128)
 def display_terms(expr: sympy.Expr) -> tuple[tuple[float, sympy.Expr], ...] | None:
     """The expression as (coefficient, factor) terms in the display normal form; None if it has none."""
+    if _has_root_or_quotient(expr):
+        # the expansion below would end in Poly's PolynomialError: a hub law's expression took ~30 s to get
+        # there (sympy.expand of the composed NED accelerations)
+        return None
     e = sympy.expand(expr).replace(lambda n: isinstance(n, sympy.Abs), _abs_to_symbol)
     gens: list[sympy.Expr] = [*_A, *_U, *_TV, *_OTHER]
     gens += sorted(

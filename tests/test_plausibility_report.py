@@ -3,6 +3,7 @@ identify` end to end (a separate process) on the real PX4 log."""
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -156,3 +157,17 @@ def test_without_a_vehicle_the_hover_is_the_models_own_not_the_logs_median_speed
     weak = {c.name: c for c in plausibility_checks(QuadrotorModel.from_model(Model(exprs)), data.xi, falling)}
     assert not weak["hover thrust"].ok and "outside" in weak["hover thrust"].text
 
+
+
+def test_an_equation_with_a_root_or_a_quotient_is_shown_as_printed_with_rounded_numbers():
+    """The ground effect's 1/(1 - (R/4h)^2) and the frame drag's |v| are no polynomial: such an equation is
+    one line as sympy prints it, its numbers rounded (the hub laws' took ~30 s to expand before that was
+    known); the polynomial wz' of the same vehicle keeps its grouped normal form."""
+    lines = {t: equation_text(t, e, 3) for t, e in true_model("fang-chen-aero").expressions.items()}
+    for target in ("ax", "ay", "az", "dwx", "dwy"):
+        (group, text), = lines[target]
+        assert group == "other" and "Abs(" in text, (target, text[:200])
+        numbers = re.findall(r"(?<![\w.])\d+\.\d+(?:e-?\d+)?", text)
+        digits = [len(n.split("e")[0].replace(".", "").lstrip("0")) for n in numbers]
+        assert numbers and max(digits) <= 3, (target, numbers[:20])
+    assert dict(lines["dwz"])["coupling"] == "- 0.0219 wx*wy"
