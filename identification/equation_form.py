@@ -98,8 +98,8 @@ def _has_root_or_quotient(node: sympy.Expr) -> bool:
 def display_terms(expr: sympy.Expr) -> tuple[tuple[float, sympy.Expr], ...] | None:
     """The expression as (coefficient, factor) terms in the display normal form; None if it has none."""
     if _has_root_or_quotient(expr):
-        # the expansion below would end in Poly's PolynomialError: a hub law's expression took ~30 s to get
-        # there (sympy.expand of the composed NED accelerations)
+        # the expansion below would end in Poly's PolynomialError: closed-loop aero's hub-law model took 46 s
+        # to get there (sympy.expand of the composed NED accelerations)
         return None
     e = sympy.expand(expr).replace(lambda n: isinstance(n, sympy.Abs), _abs_to_symbol)
     gens: list[sympy.Expr] = [*_A, *_U, *_TV, *_OTHER]

@@ -208,7 +208,8 @@ class Dataset:
 
     def split(self, holdout_fraction: float) -> tuple[Dataset, Dataset]:
         """(train, holdout): the last holdout_fraction of each flight's rows (in time) is held out; rows of
-        one time (a step's node rows: at_step_nodes) stay on one side, the cut at the first such time."""
+        one time (a step's node rows: at_step_nodes) stay on one side, the cut at the first such time (at the
+        second time where that would be the flight's first)."""
         if not (0.0 < holdout_fraction < 1.0):
             raise UserError(f"holdout fraction must be between 0 and 1 (exclusive), got {holdout_fraction}")
         hold = np.zeros(len(self), dtype=bool)

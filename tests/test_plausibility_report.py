@@ -158,11 +158,10 @@ def test_without_a_vehicle_the_hover_is_the_models_own_not_the_logs_median_speed
     assert not weak["hover thrust"].ok and "outside" in weak["hover thrust"].text
 
 
-
 def test_an_equation_with_a_root_or_a_quotient_is_shown_as_printed_with_rounded_numbers():
     """The ground effect's 1/(1 - (R/4h)^2) and the frame drag's |v| are no polynomial: such an equation is
-    one line as sympy prints it, its numbers rounded (the hub laws' took ~30 s to expand before that was
-    known); the polynomial wz' of the same vehicle keeps its grouped normal form."""
+    one line as sympy prints it, its numbers rounded (shown so without expanding it first: closed-loop aero's
+    hub laws took 46 s to expand); the polynomial wz' of the same vehicle keeps its grouped normal form."""
     lines = {t: equation_text(t, e, 3) for t, e in true_model("fang-chen-aero").expressions.items()}
     for target in ("ax", "ay", "az", "dwx", "dwy"):
         (group, text), = lines[target]
