@@ -142,7 +142,7 @@ class LeastSquaresProblem:
         t = self.subset_factor(idx) if factor is None else factor
         r = t[:k, :k]
         diag = np.abs(np.diag(r))
-        if not (diag.size == 0 or diag.min() <= RANK_TOLERANCE * diag.max()):  # else dependent columns
+        if diag.size and independent_pivots(diag):  # else dependent columns
             rinv, info = scipy.linalg.lapack.dtrtri(r, lower=0)
             if info == 0:
                 x = rinv @ t[:k, k]
@@ -202,9 +202,26 @@ class LeastSquaresProblem:
         return out
 
 
-# a term set's factor with a pivot (removal_costs, range_basis) or singular value (dependent_removal_costs,
-# range_basis) at or below this fraction of the largest: dependent columns
+# a term set's factor with a pivot (independent_pivots) or singular value (numerical_rank) at or below this
+# fraction of the largest: dependent columns
 RANK_TOLERANCE = 1e-10
+
+
+def independent_pivots(diag: np.ndarray) -> bool:
+    """Whether a triangular factor's pivots (|diag|, not empty) say its columns are independent."""
+    return bool(diag.min() > RANK_TOLERANCE * diag.max())
+
+
+def numerical_rank(sv: np.ndarray) -> int:
+    """How many singular values (descending) are above RANK_TOLERANCE of the largest."""
+    return int(np.sum(sv > RANK_TOLERANCE * sv[0])) if sv.size and sv[0] > 0 else 0
+
+
+def removal_choice(costs: np.ndarray, idx: np.ndarray) -> int:
+    """The position of the term a path drops: of dependent terms (cost 0) the one latest in the pool's
+    order (the pool lists the simpler features first), else the cheapest."""
+    zero = np.flatnonzero(costs == 0.0)
+    return int(zero[np.argmax(idx[zero])]) if zero.size else int(np.argmin(costs))
 
 
 def range_basis(m: np.ndarray) -> np.ndarray:
@@ -213,11 +230,10 @@ def range_basis(m: np.ndarray) -> np.ndarray:
     along rounding directions m does not span, and projections onto it fit the target along them too)."""
     q, r = np.linalg.qr(m, mode="reduced")
     diag = np.abs(np.diag(r))
-    if diag.size == 0 or diag.min() > RANK_TOLERANCE * diag.max():
+    if diag.size == 0 or independent_pivots(diag):
         return q
     u, sv, _ = np.linalg.svd(m, full_matrices=False)
-    rank = int(np.sum(sv > RANK_TOLERANCE * sv[0])) if sv[0] > 0 else 0
-    return u[:, :rank]
+    return u[:, : numerical_rank(sv)]
 
 
 def dependent_removal_costs(r: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -232,7 +248,7 @@ def dependent_removal_costs(r: np.ndarray, w: np.ndarray) -> np.ndarray:
     if k == 0:
         return np.zeros(0)
     u, sv, vt = np.linalg.svd(r)
-    rank = int(np.sum(sv > RANK_TOLERANCE * sv[0])) if sv.size and sv[0] > 0 else 0
+    rank = numerical_rank(sv)
     v = vt[:rank].T / sv[:rank]  # V_r S_r^-1 (k, rank): r^+ = V_r S_r^-1 U_r^T
     x = v @ (u[:, :rank].T @ w)
     diag = np.sum(v * v, axis=1)  # diag of G^+ = r^+ r^+^T
@@ -253,7 +269,7 @@ def lstsq_by_qr(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if 0 < k <= n:
         r = np.linalg.qr(np.column_stack([a, b]), mode="r")
         d = np.abs(np.diag(r[:k, :k]))
-        if d.min() > 1e-10 * d.max():
+        if independent_pivots(d):
             rhs = r[:k, k] if b.ndim == 1 else r[:k, k:]
             rest = r[k:, k] if b.ndim == 1 else r[k:, k:]
             return scipy.linalg.solve_triangular(r[:k, :k], rhs), np.linalg.norm(rest, axis=0)
@@ -299,10 +315,7 @@ def backward_path(problem: LeastSquaresProblem, active: np.ndarray) -> list[np.n
         out.append(current)
         if idx.size == 1:
             break
-        costs = problem.removal_costs(idx, factor)
-        # of dependent terms (cost 0) the last goes first: the pool lists the simpler features first
-        zero = np.flatnonzero(costs == 0.0)
-        j = int(zero[-1]) if zero.size else int(np.argmin(costs))
+        j = removal_choice(problem.removal_costs(idx, factor), idx)
         idx = np.delete(idx, j)
         # the factor without column j, by Givens rotations (O(k^2)) rather than a new QR (O(p k^2))
         rows = factor.shape[0]
@@ -334,9 +347,7 @@ def forward_path(
         while idx.size > 1:
             costs = problem.removal_costs(idx)
             costs[idx == new] = np.inf
-            # of dependent terms (cost 0) the one latest in the pool's order goes, as in backward_path
-            zero = np.flatnonzero(costs == 0.0)
-            k = int(zero[np.argmax(idx[zero])]) if zero.size else int(np.argmin(costs))
+            k = removal_choice(costs, idx)
             if costs[k] > prune * max(problem.rss(idx), 1e-300):
                 break
             idx = np.delete(idx, k)
