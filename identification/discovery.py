@@ -1566,15 +1566,42 @@ def _product_factors(expr: sympy.Expr) -> list[sympy.Expr]:
 
 def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray], np.ndarray]:
     """P (N, n_primitives) -> (N, len(exprs)) for expressions in the primitive names."""
-    fns = [_expression_fn(tuple(prims), e) for e in exprs]
+    names = tuple(prims)
+    fns = [(e, _expression_fn(names, e)) for e in exprs]
 
     def matrix(P: np.ndarray) -> np.ndarray:
-        args = [P[:, k] for k in range(P.shape[1])]
-        with np.errstate(all="ignore"):
-            cols = [fn(*args) for fn in fns]
-        return np.column_stack([np.broadcast_to(np.asarray(c, float), (P.shape[0],)) for c in cols])
+        held = _held_columns(P)
+        args: list[np.ndarray] | None = None
+        out = np.empty((P.shape[0], len(fns)))
+        for j, (e, fn) in enumerate(fns):
+            col = held.get((names, e))
+            if col is None:
+                if args is None:
+                    args = [P[:, k] for k in range(P.shape[1])]
+                with np.errstate(all="ignore"):
+                    col = np.broadcast_to(np.asarray(fn(*args), float), (P.shape[0],))
+                held[(names, e)] = col
+            out[:, j] = col
+        return out
 
     return matrix
+
+
+# expression columns on the last few primitive matrices, by (primitive names, expression): the polish refits
+# hundreds of term lists that share all but one term (their columns were 3 % of a closed-loop target's fit)
+_HELD: list[tuple[np.ndarray, dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]]] = []
+_HELD_MATRICES = 4
+
+
+def _held_columns(P: np.ndarray) -> dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]:
+    """The columns kept for the primitive matrix P (the same array object: identify's fit, pick and
+    validation rows each have one), a new empty store for a new P (the oldest one dropped)."""
+    for matrix, held in _HELD:
+        if matrix is P:
+            return held
+    held: dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray] = {}
+    _HELD[:] = [(P, held), *_HELD[: _HELD_MATRICES - 1]]
+    return held
 
 
 @functools.lru_cache(maxsize=8192)

@@ -44,7 +44,8 @@ def replacements(
     blocked[terms] = True
     out: list[int] = []
     yw = y * sw
-    for j in terms:
+    weighted = np.hstack([np.ones((len(y), 1)), F[:, terms]]) * sw[:, None]  # the model's columns, once
+    for at, j in enumerate(terms):
         zj = Z[:, j]
         if not np.all(np.isfinite(zj)):
             continue
@@ -59,14 +60,14 @@ def replacements(
         near = [int(k) for k in np.argsort(-corr, kind="stable")[:nearest] if corr[k] > 0.0]
         if not near:
             continue
-        base = np.hstack([np.ones((len(y), 1)), F[:, [k for k in terms if k != j]]]) * sw[:, None]
-        q = np.linalg.qr(base, mode="reduced")[0]
+        q = np.linalg.qr(np.delete(weighted, at + 1, axis=1), mode="reduced")[0]
         r = yw - q @ (q.T @ yw)
-        cols = F[:, [j, *near]] * sw[:, None]
+        raw = F[:, [j, *near]]
+        cols = raw * sw[:, None]
         cols = cols - q @ (q.T @ cols)
         den = np.sum(cols * cols, axis=0)
         with np.errstate(all="ignore"):
-            gain = np.where(den > 1e-12 * np.maximum(np.sum(F[:, [j, *near]] ** 2, axis=0), 1e-300),
+            gain = np.where(den > 1e-12 * np.maximum(np.sum(raw**2, axis=0), 1e-300),
                             (r @ cols) ** 2 / den, 0.0)
         k = int(np.argmax(gain[1:]))
         if gain[1 + k] > gain[0] and near[k] not in out:
