@@ -1580,7 +1580,8 @@ def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray
                     args = [P[:, k] for k in range(P.shape[1])]
                 with np.errstate(all="ignore"):
                     col = np.broadcast_to(np.asarray(fn(*args), float), (P.shape[0],))
-                held[(names, e)] = col
+                if len(held) * P.shape[0] * 8 < _HELD_BYTES:
+                    held[(names, e)] = col
             out[:, j] = col
         return out
 
@@ -1588,9 +1589,12 @@ def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray
 
 
 # expression columns on the last few primitive matrices, by (primitive names, expression): the polish refits
-# hundreds of term lists that share all but one term (their columns were 3 % of a closed-loop target's fit)
+# hundreds of term lists that share all but one term, and a hub law's columns are large expressions
+# (evaluated anew each time, closed-loop aero's identify took 123 s where it takes 90 s now); at most
+# _HELD_BYTES per matrix (closed-loop aero's fz: 21 MB over all matrices at its peak)
 _HELD: list[tuple[np.ndarray, dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]]] = []
 _HELD_MATRICES = 4
+_HELD_BYTES = 256 * 2**20
 
 
 def _held_columns(P: np.ndarray) -> dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]:

@@ -61,3 +61,16 @@ def test_columns_are_kept_per_matrix_object_and_for_the_last_few_only(monkeypatc
     runs.clear()
     np.testing.assert_array_equal(discovery._lambdify(PRIMS, [wx**2])(P)[:, 0], P[:, 0] ** 2)
     assert runs == [wx**2]
+
+
+def test_a_full_store_keeps_no_more_columns(monkeypatch) -> None:
+    """Past _HELD_BYTES a matrix's store keeps no new column (each is evaluated anew, with the same
+    values): memory stays bounded whatever the number of expressions."""
+    runs = _counting(monkeypatch)
+    monkeypatch.setattr(discovery, "_HELD_BYTES", 2 * 10 * 8)  # two columns of 10 rows
+    wx, wz, u1 = (PRIMITIVE_SYMBOLS[n] for n in PRIMS)
+    P = np.random.default_rng(7).normal(size=(10, 3))
+    discovery._lambdify(PRIMS, [wx**2, wz**2, u1**2])(P)
+    again = discovery._lambdify(PRIMS, [wx**2, wz**2, u1**2])(P)
+    assert runs == [wx**2, wz**2, u1**2, u1**2]
+    np.testing.assert_array_equal(again, P**2)
