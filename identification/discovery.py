@@ -1591,7 +1591,7 @@ def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray
 # expression columns on the last few primitive matrices, by (primitive names, expression): the polish refits
 # hundreds of term lists that share all but one term, and a hub law's columns are large expressions
 # (evaluated anew each time, closed-loop aero's identify took 123 s where it takes 90 s now); at most
-# _HELD_BYTES per matrix (closed-loop aero's fz: 21 MB over all matrices at its peak)
+# _HELD_BYTES per matrix (closed-loop aero's fx, fy and fz: 21 MB over all matrices at the peak)
 _HELD: list[tuple[np.ndarray, dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]]] = []
 _HELD_MATRICES = 4
 _HELD_BYTES = 256 * 2**20
@@ -1599,7 +1599,9 @@ _HELD_BYTES = 256 * 2**20
 
 def _held_columns(P: np.ndarray) -> dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]:
     """The columns kept for the primitive matrix P (the same array object: identify's fit, pick and
-    validation rows each have one), a new empty store for a new P (the oldest one dropped)."""
+    validation rows each have one), a new empty store for a new P (the oldest one dropped). Kept by
+    identity: a primitive matrix is never written after it is made (_Columns keeps each X's), and a kept
+    one is held here, so no other array can take its place at its address."""
     for matrix, held in _HELD:
         if matrix is P:
             return held
