@@ -61,6 +61,7 @@ from identification.paired_loss import paired_loss_t
 from identification.pareto import admissible, attach_holdout, pick_limit, select, within_tolerance
 from identification.replacement import replacements
 from identification.robust_weights import huber_weights
+from identification.rows_cache import cached
 from identification.sparse import (
     LeastSquaresProblem,
     lstsq_by_qr,
@@ -1570,44 +1571,23 @@ def _lambdify(prims: list[str], exprs: list[sympy.Expr]) -> Callable[[np.ndarray
     fns = [(e, _expression_fn(names, e)) for e in exprs]
 
     def matrix(P: np.ndarray) -> np.ndarray:
-        held = _held_columns(P)
-        args: list[np.ndarray] | None = None
+        # each expression's column once per primitive matrix (identification.rows_cache): the polish refits
+        # hundreds of term lists that share all but one term, and a hub law's columns are large expressions
+        # (evaluated anew each time, closed-loop aero's identify took 123 s where it takes 90 s now)
+        args: list[np.ndarray] = []
+
+        def column(fn: Callable[..., np.ndarray]) -> np.ndarray:
+            if not args:
+                args.extend(P[:, k] for k in range(P.shape[1]))
+            with np.errstate(all="ignore"):
+                return np.broadcast_to(np.asarray(fn(*args), float), (P.shape[0],))
+
         out = np.empty((P.shape[0], len(fns)))
         for j, (e, fn) in enumerate(fns):
-            col = held.get((names, e))
-            if col is None:
-                if args is None:
-                    args = [P[:, k] for k in range(P.shape[1])]
-                with np.errstate(all="ignore"):
-                    col = np.broadcast_to(np.asarray(fn(*args), float), (P.shape[0],))
-                if len(held) * P.shape[0] * 8 < _HELD_BYTES:
-                    held[(names, e)] = col
-            out[:, j] = col
+            out[:, j] = cached(P, (names, e), lambda fn=fn: column(fn))
         return out
 
     return matrix
-
-
-# expression columns on the last few primitive matrices, by (primitive names, expression): the polish refits
-# hundreds of term lists that share all but one term, and a hub law's columns are large expressions
-# (evaluated anew each time, closed-loop aero's identify took 123 s where it takes 90 s now); at most
-# _HELD_BYTES per matrix (closed-loop aero's fx, fy and fz: 21 MB over all matrices at the peak)
-_HELD: list[tuple[np.ndarray, dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]]] = []
-_HELD_MATRICES = 4
-_HELD_BYTES = 256 * 2**20
-
-
-def _held_columns(P: np.ndarray) -> dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray]:
-    """The columns kept for the primitive matrix P (the same array object: identify's fit, pick and
-    validation rows each have one), a new empty store for a new P (the oldest one dropped). Kept by
-    identity: a primitive matrix is never written after it is made (_Columns keeps each X's), and a kept
-    one is held here, so no other array can take its place at its address."""
-    for matrix, held in _HELD:
-        if matrix is P:
-            return held
-    held: dict[tuple[tuple[str, ...], sympy.Expr], np.ndarray] = {}
-    _HELD[:] = [(P, held), *_HELD[: _HELD_MATRICES - 1]]
-    return held
 
 
 @functools.lru_cache(maxsize=8192)

@@ -8,6 +8,7 @@ import numpy as np
 import sympy
 
 import identification.discovery as discovery
+import identification.rows_cache as rows_cache
 from identification.body_frame import PRIMITIVE_SYMBOLS
 
 PRIMS = ["wx", "wz", "u1"]
@@ -47,27 +48,25 @@ def test_columns_are_the_expressions_values_and_shared_terms_are_evaluated_once(
     np.testing.assert_array_equal(again[:, 0], P[:, 2] ** 2)
 
 
-def test_columns_are_kept_per_matrix_object_and_for_the_last_few_only(monkeypatch) -> None:
-    """Another array (even with the same values) is evaluated anew, and only the last few matrices' columns
-    are kept: a matrix seen before the last _HELD_MATRICES others is evaluated again."""
+def test_columns_are_kept_per_matrix_object(monkeypatch) -> None:
+    """Another array (even with the same values) is evaluated anew: columns are kept by the primitive
+    matrix's identity (identification.rows_cache), while it lives."""
     runs = _counting(monkeypatch)
     wx = PRIMITIVE_SYMBOLS["wx"]
     P = np.random.default_rng(6).normal(size=(20, 3))
     discovery._lambdify(PRIMS, [wx**2])(P)
     discovery._lambdify(PRIMS, [wx**2])(P.copy())
     assert len(runs) == 2
-    for _ in range(discovery._HELD_MATRICES):
-        discovery._lambdify(PRIMS, [wx**2])(np.ones((4, 3)))
     runs.clear()
     np.testing.assert_array_equal(discovery._lambdify(PRIMS, [wx**2])(P)[:, 0], P[:, 0] ** 2)
-    assert runs == [wx**2]
+    assert runs == []
 
 
 def test_a_full_store_keeps_no_more_columns(monkeypatch) -> None:
-    """Past _HELD_BYTES a matrix's store keeps no new column (each is evaluated anew, with the same
-    values): memory stays bounded whatever the number of expressions."""
+    """Past rows_cache.MAX_BYTES_PER_ARRAY a matrix's store keeps no new column (each is evaluated anew,
+    with the same values): memory stays bounded whatever the number of expressions."""
     runs = _counting(monkeypatch)
-    monkeypatch.setattr(discovery, "_HELD_BYTES", 2 * 10 * 8)  # two columns of 10 rows
+    monkeypatch.setattr(rows_cache, "MAX_BYTES_PER_ARRAY", 2 * 10 * 8)  # two columns of 10 rows
     wx, wz, u1 = (PRIMITIVE_SYMBOLS[n] for n in PRIMS)
     P = np.random.default_rng(7).normal(size=(10, 3))
     discovery._lambdify(PRIMS, [wx**2, wz**2, u1**2])(P)
