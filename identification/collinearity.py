@@ -313,7 +313,7 @@ def term_identification(
     t, vif = term_t_ratios(columns, y, max_lag, noise)
     if t is None:
         return 0.0, float("inf")
-    measured = np.isfinite(vif)
+    measured = ~np.isnan(vif)  # NaN: a column that does not vary; inf: a term tied exactly to the others
     if not measured.any():
         return float("inf"), 1.0
     return float(t[measured].min()), float(vif[measured].max())
