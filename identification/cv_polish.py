@@ -34,6 +34,9 @@ pass through such models: on realistic-sensor fang-chen-aero (seed 23) fy's pick
 the constant (the accelerometer's bias) and wx + wx (u1^2 + .. + u4^2) for wx (u1 + .. + u4); the true
 structure, smaller and better, was several moves away, and every model between was better than the pick
 and not identified (the rotors' sum, or its root, beside wx sum(u)), so a polish of the pick alone stopped.
+While a candidate passes the identification rule, a move that keeps a set of terms whose VIF exceeds the
+rule's limit (the model it moves from, or one of its one-term removals: tied_subsets) is left out unfitted:
+a term's VIF only grows with the terms beside it, so no such move could be picked or set the tolerance.
 """
 
 from __future__ import annotations
