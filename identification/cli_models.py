@@ -38,7 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--engine",
         default="default",
         choices=ENGINE_NAMES,
-        help="default: sparse regression, then pyoperon where the library does not explain a target",
+        help="default (= discovery): body-frame features grown from primitives, screened and sparsified, "
+        "pyoperon on the residual; sparse: STLSQ over a library of the paper's terms (NED, no discovery); "
+        "operon: pyoperon alone; pysr: PySR (needs Julia)",
     )
     p.add_argument(
         "--budget",
