@@ -14,7 +14,7 @@ EXIT_BELOW_THRESHOLD = 4  # quadsr identify --strict: a target's validation R^2 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the identify, validate and model-from-vehicle subcommands."""
-    from identification.engine import ENGINE_NAMES
+    from identification.engine import ENGINE_HELP, ENGINE_NAMES
 
     p = sub.add_parser(
         "identify",
@@ -38,9 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--engine",
         default="default",
         choices=ENGINE_NAMES,
-        help="default (= discovery): body-frame features grown from primitives, screened and sparsified, "
-        "pyoperon on the residual; sparse: STLSQ over a library of the paper's terms (NED, no discovery); "
-        "operon: pyoperon alone; pysr: PySR (needs Julia)",
+        help=ENGINE_HELP,
     )
     p.add_argument(
         "--budget",

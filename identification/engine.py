@@ -31,6 +31,7 @@ from identification.engine_settings import (
 )
 
 __all__ = [
+    "ENGINE_HELP",
     "ENGINE_NAMES",
     "Candidate",
     "DiscoverySettings",
@@ -48,6 +49,10 @@ __all__ = [
 ]
 
 ENGINE_NAMES: tuple[str, ...] = ("default", "discovery", "sparse", "operon", "pysr")
+# what each engine is, in one line (quadsr identify --engine's help), beside the names it describes
+ENGINE_HELP = ("default (= discovery): body-frame features grown from primitives, screened and sparsified, "
+               "pyoperon on the residual; sparse: STLSQ over a library of the paper's terms "
+               "(NED, no discovery); operon: pyoperon alone; pysr: PySR (needs Julia)")
 
 
 def make_engine(name: str, settings: EngineSettings | None = None) -> Engine:
