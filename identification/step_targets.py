@@ -155,6 +155,7 @@ def step_interval_rows(
     ratio: float,
     gravity: float | None = None,
     notes: list[str] | None = None,
+    row_targets: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Rows of the N-1 intervals between samples: (t_mid s, xi (N-1,12), u (N-1,4), targets (N-1,6)).
 
@@ -163,7 +164,9 @@ def step_interval_rows(
     Targets: ax ay az (NED m/s^2) and dwx dwy dwz (FRD rad/s^2), the exact means over each interval; with
     gravity (m/s^2) ax ay az are taken to the midpoint attitude (_midpoint_acceleration) and the targets
     from the step means to the rows' state where that is known (_at_row_state; what moved is appended to
-    notes). The caller keeps only intervals of one step whose two ends are usable.
+    notes). row_targets False (rows for the caller's own targets, raw sensor ones): the targets are not
+    taken to the rows' state; gravity still makes the rows' velocity the step mean of R^T v. The caller
+    keeps only intervals of one step whose two ends are usable.
     """
     t = np.asarray(t, dtype=float)
     dt = np.diff(t)[:, None]
@@ -186,7 +189,9 @@ def step_interval_rows(
     a_mid = a_mean
     dw_mean = (w[1:] - w[:-1]) / dt
     mean_sq, first = lagged_square_moments(u[:-1], u[1:], ratio)
-    xi[:, 9:12] -= _rate_moment(dw_mean, xi[:, 9:12], mean_sq, first, dt[:, 0])
+    ends = rotation_matrix(*euler_from_quaternions(q).T)
+    v_b = np.einsum("nji,nj->ni", ends, v)  # body velocity at each sample
+    xi[:, 9:12] -= _rate_moment(dw_mean, (u, w, v_b), ratio, mean_sq, first, dt[:, 0])
     if gravity is not None:
         r = rotation_matrix(xi[:, 6], xi[:, 7], xi[:, 8])
         rough = np.einsum("nji,nj->ni", r, a_mean - np.array([0.0, 0.0, gravity]))  # f_b, to fit the map
@@ -195,11 +200,9 @@ def step_interval_rows(
         xi[:, 3:6] = _mean_body_velocity(xi[:, 3:6], a_mean, a_mid, r, xi[:, 9:12], dw_mean,
                                          moment, dt[:, 0], gravity)
     u_mid = np.sqrt(np.maximum(mean_sq, 0.0))
-    if gravity is not None:
+    if gravity is not None and row_targets:
         g_e3 = np.array([0.0, 0.0, gravity])
         f_b = np.einsum("nji,nj->ni", r, a_mid - g_e3)
-        ends = rotation_matrix(*euler_from_quaternions(q).T)
-        v_b = np.einsum("nji,nj->ni", ends, v)  # body velocity at each sample
         paths = _node_deviations(u[:-1], u[1:], u_mid, ratio, w[1:] - w[:-1], v_b[1:] - v_b[:-1])
         state = np.column_stack((u_mid, xi[:, 9:12], np.einsum("nji,nj->ni", r, xi[:, 3:6])))
         body, moved = _at_row_state(np.concatenate((f_b, dw_mean), axis=1), state, paths)
@@ -421,23 +424,50 @@ def _midpoint_acceleration(
 
 
 def _rate_moment(
-    dw: np.ndarray, rates: np.ndarray, mean_sq: np.ndarray, first: np.ndarray, dt: np.ndarray
+    dw: np.ndarray, ends: tuple[np.ndarray, np.ndarray, np.ndarray], ratio: float, mean_sq: np.ndarray,
+    first: np.ndarray, dt: np.ndarray
 ) -> np.ndarray:
     """The first moment (M,3) rad/s of the angular acceleration about each step's midpoint: the mean of the
     ends' rates minus it is the step mean of the rates.
 
-    The torques follow the rotors' squared speeds, which lag toward a new command within every step, so
-    the rates curve over a step: under a rate loop the mean of the ends' rates overstated the step mean by
-    4.3e-4 of w (measured on a closed-loop fang-chen-aero flight replayed densely), which damping laws and
-    rotor drag (w x r_i) read as a 4e-4 bias. dw is written as B_u [mean u_i^2] + B_w w + c, fitted by
-    least squares over the flight's steps (the vehicle's mixer and, roughly, its damping), and the moment is
-    B_u [first moments of u_i^2] dt (lagged_square_moments) + B_w dw dt^2/12 (the rates' own change).
-    Measured on that flight: 6.5e-4 -> 2e-5 rad/s RMS against the dense replay's step means.
+    The rates curve over a step: the torques follow the rotors' squared speeds, which lag toward a new
+    command within every step, and the rates' own products (the inertia coupling), the rotors' gyroscopic
+    torque and rotor drag move with the rates and the body velocity. dw (M,3, each step's mean angular
+    acceleration) is written as a quadratic surrogate in the state z = (u_i, w, v_b) (_quadratic_basis, the
+    t rule of _surrogate), fitted as its mean over each step's two Gauss nodes with z on its path (ends: u
+    (N,4) rad/s, w (N,3) FRD rad/s, v_b (N,3) FRD m/s per sample; the rotors on their lag, w and v_b on the
+    chord of the ends), and the moment is the surrogate's: (P(z2) - P(z1)) dt / (4 sqrt 3) by two-point
+    Gauss quadrature of (s - dt/2) P, the rotors' squares' exactly (mean_sq, first:
+    lagged_square_moments). Rates linear in w alone (the damping) missed the inertia coupling, which
+    dominates in a tumbling open-loop flight (30 rad/s): the rows' rates were off by up to 0.01 rad/s, and
+    the gyro's differences (raw sensor targets) missed the true model's step means at the rows' Gauss nodes
+    by 17 % of the gyro's noise variance in the weak form (fang-chen-buaa, paper-train, wy'), 1e-4 after.
     """
-    b = _fit_on_rotors(dw, mean_sq, rates)
-    if b is None:
-        return np.zeros_like(dw)
-    return first @ b[:4] * dt[:, None] + np.nan_to_num(dw) @ b[4:7] * (dt**2 / 12.0)[:, None]
+    u, w, v_b = ends
+    r = float(ratio)
+    c, d, _ = _lag_path(u[:-1], u[1:], r)
+    nodes = [np.column_stack((c + d * r**tau, w[:-1] + tau * (w[1:] - w[:-1]),
+                              v_b[:-1] + tau * (v_b[1:] - v_b[:-1]))) for tau in GAUSS_NODES]
+    scale = np.sqrt(np.nanmean(nodes[0] ** 2, axis=0))
+    scale[~(scale > 0.0)] = 1.0
+    b1, b2 = (_quadratic_basis(z / scale) for z in nodes)
+    mean = 0.5 * (b1 + b2)
+    moment = (b2 - b1) / (4.0 * np.sqrt(3.0))
+    for i, col in enumerate(_square_columns(nodes[0].shape[1])):  # the rotors' thrust: exact on the lag
+        mean[:, col] = mean_sq[:, i] / scale[i] ** 2
+        moment[:, col] = first[:, i] / scale[i] ** 2
+    out = np.zeros_like(dw)
+    for j in range(dw.shape[1]):
+        b = _surrogate(mean, dw[:, j])
+        if b is not None:
+            out[:, j] = np.nan_to_num(moment @ b) * dt
+    return out
+
+
+def _square_columns(k: int) -> list[int]:
+    """The columns of u1^2 .. u4^2 in _quadratic_basis of k quantities (u1..u4 first)."""
+    pairs = [(i, j) for i in range(k) for j in range(i, k) if not (j < 4 and i != j)]
+    return [1 + k + pairs.index((i, i)) for i in range(4)]
 
 
 def _force_moment(f_b: np.ndarray, mean_sq: np.ndarray, first: np.ndarray, dt: np.ndarray) -> np.ndarray:

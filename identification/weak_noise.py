@@ -145,9 +145,9 @@ class RefitTest:
 
     Under the stated noise and a right model both fits are unbiased and the generalised one has the smaller
     covariance, so their difference has covariance V_plain - V_gls; a difference far beyond it (p below
-    SPECIFICATION_LEVEL) means the rows hold something systematic the two weigh differently (the step
-    rows' regressors on a fast-turning open-loop flight, which the generalised fit, weighing the low
-    frequencies, takes in): then the weak rows' own fit stays. Standard errors in the terms' own units."""
+    SPECIFICATION_LEVEL) means the rows hold something systematic the two weigh differently (a term the
+    model lacks or ties to another, a regressor off its step mean: the generalised fit, weighing the low
+    frequencies, takes it in): then the weak rows' own fit stays. Standard errors in the terms' own units."""
 
     statistic: float
     dof: int

@@ -19,9 +19,10 @@ Raw sensor targets for the weak form (SensorTargetSettings.step_intervals: ident
 RAW_SENSOR_TARGETS) of a log with rotor speeds and commands: one row per step interval too, the gyro's
 difference over the step (its exact mean derivative) and the accelerometer's mean over it (its two ends
 averaged plus what the rotors' lag adds within the step: _interval_specific_force), the regressors those of
-the truth targets' rows (identification.step_targets; not moved to the row state: that shift is fitted to
-the truth accelerations), and with them each step's path (aux `step_nodes`: the state at the step's two
-Gauss nodes), so that load_dataset can make each step two node rows whose mean is the step's.
+the truth targets' rows (identification.step_targets, the step means of the rates and of R^T v; the targets
+not moved to the row state: that shift is fitted to the truth accelerations), and with them each step's
+path (aux `step_nodes`: the state at the step's two Gauss nodes), so that load_dataset can make each step two
+node rows whose mean is the step's.
 
 Rows where the vehicle rests on the ground plane (z = 0, no motion: the SITL clamps the state there and the
 free-flight equations do not hold) are dropped (aux `ground_s`, each row's time from the nearest of them,
@@ -275,7 +276,8 @@ def read_tlog_dataset(
     if targets == "sensors" and raw_steps and rotor is None and throttles is not None and step_intervals:
         ratio = motor_lag_ratio(u, throttles, usable)
         if ratio is not None:
-            t_mid, xi_mid, u_mid, _ = step_interval_rows(t, pos, vel, quat, rates, u, ratio)
+            t_mid, xi_mid, u_mid, _ = step_interval_rows(t, pos, vel, quat, rates, u, ratio, gravity=g,
+                                                         row_targets=False)
             steps = _interval_filter(filt, times, rate_hz, decimation)
             clipped = _clamped_imu(acc, gyro)
             steps.drop("IMU sample clamped at an end of the step (+-16 g / +-2000 deg/s)",
