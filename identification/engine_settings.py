@@ -280,6 +280,10 @@ class SelectionSettings:
     # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate
     # dampings); false: ordinary least squares on the weak rows, as the candidates were fitted
     refit_gls: bool = True
+    # of the candidates the pick's rule passes within its tolerance, at most one term larger than the pick,
+    # the simplest whose structure Hausman's test on the fit and pick rows does not reject, when it rejects
+    # the pick's (identification.specification_pick; weak rows with a stated noise only)
+    specification_pick: bool = True
     # that refit's standard errors go in the model file; a term whose standard error is above this fraction
     # of its coefficient is named on the terminal as not pinned down by the flight
     report_relative_se: float = 0.1

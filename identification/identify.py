@@ -65,8 +65,9 @@ from identification.metrics import LOSSES, table_metrics, weak_metrics
 from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel, expression_to_string
 from identification.pareto import admissible, attach_holdout, excited, front_points, select
 from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
-from identification.refit import refit_rows
+from identification.refit import refit_rows, structure_test
 from identification.self_feedback import mark_self_feedback
+from identification.specification_pick import specification_line, specification_pick
 from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
 from identification.weak_noise import stacked_whitener, stated_whitener, uncertain_terms
@@ -324,17 +325,21 @@ def identify(
                                                                   target=name), extra=extra,
                                                 rounds=settings.selection.cv_polish_rounds,
                                                 beam=settings.selection.cv_polish_beam)
+        parts = [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])]
+        whiteners, spec = None, None
+        if settings.selection.refit_gls and weak is not None:
+            whiteners = [stated_whitener(part, mask, ops[key], j)
+                         for part, mask, key in ((roles.fit, ok, "train"), (roles.pick, okp, "pick"))]
+        if settings.selection.specification_pick and whiteners is not None:
+            test = functools.partial(structure_test, parts=parts, whiteners=whiteners)
+            chosen, spec = specification_pick(chosen, candidates, settings.selection, scale, test)
         flag = _excitation(name, candidates, (X[ok], y[ok]), loss, ops, settings, score)
         if flag is not None:
             chosen, line, out["not_excited"] = flag
             candidates.append(chosen)
             lines.append(f"warning: {line}")
         if settings.selection.refit_with_pick_rows or folded is not None:
-            whiteners = None
-            if settings.selection.refit_gls and weak is not None:
-                whiteners = [stated_whitener(part, mask, ops[key], j)
-                             for part, mask, key in ((roles.fit, ok, "train"), (roles.pick, okp, "pick"))]
-            refit = refit_rows(chosen, [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])], loss,
+            refit = refit_rows(chosen, parts, loss,
                                settings.sparse.irls_iterations, settings.sparse.irls_max_terms, whiteners)
             if refit is not None:
                 candidates = [refit if c is chosen else c for c in candidates]
@@ -368,6 +373,9 @@ def identify(
         out["identifiability"]["pick_t_rows"] = (
             "fit and pick rows" if folded is not None and folded.identify_on_all else "fit rows")
         lines += describe(name, coll)
+        if spec is not None:  # the pick's structure rejected by the rows (specification_pick)
+            out["identifiability"]["specification_pick"] = spec
+            lines.append(specification_line(name, spec))
         if chosen.standard_errors:
             out["identifiability"]["standard_errors"] = {term: {"coefficient": k, "standard_error": e}
                                                          for term, (k, e) in chosen.standard_errors.items()}

@@ -128,6 +128,21 @@ def pick_limit(candidates: Sequence[Candidate], settings: SelectionSettings, sca
     return within_tolerance(_passing_rule(finite, settings)[1], settings, scale)
 
 
+def within_pick_tolerance(
+    candidates: Sequence[Candidate], settings: SelectionSettings, scale: float = 1.0
+) -> tuple[list[Candidate], Callable[[Candidate], bool]]:
+    """The candidates select treats as equally good (held-out loss within its tolerance of the best it
+    compares), simplest first then lower loss, and the rule it compares them by; ([], the rule) when
+    none has a finite held-out loss."""
+    finite = [(c, s) for c in candidates if math.isfinite(s := _score(c))]
+    if not finite:
+        return [], lambda c: True
+    rule, best = _passing_rule(finite, settings)
+    limit = within_tolerance(best, settings, scale)
+    ok = sorted(((c, s) for c, s in finite if s <= limit), key=lambda cs: (cs[0].complexity, cs[1]))
+    return [c for c, _ in ok], rule
+
+
 def _passing_rule(
     scored: list[tuple[Candidate, float]], settings: SelectionSettings
 ) -> tuple[Callable[[Candidate], bool], float]:

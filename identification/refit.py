@@ -26,7 +26,7 @@ from identification.collinearity import term_shapes
 from identification.library import Feature
 from identification.metrics import loss as loss_fn
 from identification.sparse import LeastSquaresProblem, sparse_expression
-from identification.weak_noise import Whitener, specification_test
+from identification.weak_noise import RefitTest, Whitener, specification_test
 
 Rows = tuple[np.ndarray, np.ndarray, "sparse.spmatrix | None"]  # X (N,16), y (N,), weak operator or None
 
@@ -44,21 +44,11 @@ def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterati
     shapes = term_shapes(chosen.expression)
     if not shapes:
         return None
-    used = [i for i, (X, _, _) in enumerate(parts) if len(X)]
-    whiten = whiteners is not None and bool(used) and all(
-        parts[i][2] is not None and whiteners[i] is not None for i in used)
-    plain_a, plain_b = [], []
-    for i in used:
-        X, y, op = parts[i]
-        cols = expression_columns(shapes, X)
-        if not np.all(np.isfinite(cols)):
-            return None
-        if op is not None:
-            cols, y = np.asarray(op @ cols), np.asarray(op @ y)
-        plain_a.append(cols)
-        plain_b.append(np.asarray(y, float))
-    if not plain_a:
+    columns = _part_columns(shapes, parts)
+    if columns is None:
         return None
+    used, plain_a, plain_b = columns
+    whiten = _whitened(parts, used, whiteners)
     test = specification_test([(a, b, whiteners[i]) for a, b, i in zip(plain_a, plain_b, used, strict=True)]
                               ) if whiten else None
     if test is not None and test.generalised:
@@ -98,3 +88,41 @@ def terms_candidate(shapes: Sequence[sympy.Expr], coef: np.ndarray, engine: str,
         return expression_columns(shapes, X_) @ coef
 
     return Candidate(expr, 0, float("nan"), engine, predict=predict)
+
+
+def structure_test(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
+                   whiteners: Sequence[Whitener | None] | None) -> RefitTest | None:
+    """Hausman's test (weak_noise.specification_test) of the model of these terms on every part's weak
+    rows together (parts as refit_rows'); None when a part has no weak operator or whitener, a term is not
+    finite there, or the columns do not determine every coefficient."""
+    columns = _part_columns(list(shapes), parts) if shapes else None
+    if columns is None:
+        return None
+    used, plain_a, plain_b = columns
+    if not _whitened(parts, used, whiteners):
+        return None
+    return specification_test([(a, b, whiteners[i]) for a, b, i in zip(plain_a, plain_b, used, strict=True)])
+
+
+def _part_columns(shapes: list[sympy.Expr], parts: Sequence[Rows]
+                  ) -> tuple[list[int], list[np.ndarray], list[np.ndarray]] | None:
+    """(the parts with rows, each one's term columns and target on its weak rows, or its rows without
+    an operator); None when a term is not finite on some part's rows or no part has rows."""
+    used = [i for i, (X, _, _) in enumerate(parts) if len(X)]
+    plain_a, plain_b = [], []
+    for i in used:
+        X, y, op = parts[i]
+        cols = expression_columns(shapes, X)
+        if not np.all(np.isfinite(cols)):
+            return None
+        if op is not None:
+            cols, y = np.asarray(op @ cols), np.asarray(op @ y)
+        plain_a.append(cols)
+        plain_b.append(np.asarray(y, float))
+    return (used, plain_a, plain_b) if plain_a else None
+
+
+def _whitened(parts: Sequence[Rows], used: list[int], whiteners: Sequence[Whitener | None] | None) -> bool:
+    """Whether every part with rows has weak rows and their whitener."""
+    return whiteners is not None and bool(used) and all(
+        parts[i][2] is not None and whiteners[i] is not None for i in used)
