@@ -439,9 +439,11 @@ def _rate_moment(
     chord of the ends), and the moment is the surrogate's: (P(z2) - P(z1)) dt / (4 sqrt 3) by two-point
     Gauss quadrature of (s - dt/2) P, the rotors' squares' exactly (mean_sq, first:
     lagged_square_moments). Rates linear in w alone (the damping) missed the inertia coupling, which
-    dominates in a tumbling open-loop flight (30 rad/s): the rows' rates were off by up to 0.01 rad/s, and
-    the gyro's differences (raw sensor targets) missed the true model's step means at the rows' Gauss nodes
-    by 17 % of the gyro's noise variance in the weak form (fang-chen-buaa, paper-train, wy'), 1e-4 after.
+    dominates in a tumbling open-loop flight: on a paper-train tumble at up to 17 rad/s (tests) the rows'
+    rates were 3.1e-4 rad/s RMS off the step means (the ends' mean 6.5e-4), 3e-7 now; on a 60 s paper
+    flight of fang-chen-buaa (to 34 rad/s) the gyro's differences (raw sensor targets) missed the true
+    model's step means at the rows' Gauss nodes by 17 % of the realistic gyro's noise variance in the weak
+    form (wy'), 2e-5 of it now.
     """
     u, w, v_b = ends
     r = float(ratio)

@@ -478,8 +478,8 @@ def test_open_loop_rows_from_a_tumble_match_the_sitl(gap):
 
 @functools.cache
 def tumbling_flight(name: str) -> tuple:
-    """An in-process open-loop flight at 200 m with no ground: paper-train (seed 5, 3 s) on a vehicle that
-    tumbles at up to 20-30 rad/s, 4 ms steps flown as four 1 ms ones to have the step means: (vehicle, t
+    """An in-process open-loop flight at 200 m with no ground: paper-train (seed 5, 3 s), on which the vehicle
+    tumbles at up to 17-21 rad/s, 4 ms steps flown as four 1 ms ones to have the step means: (vehicle, t
     (n,), the 1 ms samples {p, v, q, w, u}, the 4 ms log of them)."""
     from bridge.vehicle import load_vehicle
     from identification.excitation import load_profile, make_generator
