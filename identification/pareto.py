@@ -96,19 +96,15 @@ def select(candidates: Sequence[Candidate], settings: SelectionSettings, scale: 
     rounds keep loss alone, the path they search by)."""
     if not candidates:
         raise ValueError("no candidates to choose from")
-    scored = [(c, _score(c)) for c in candidates]
-    finite = [(c, s) for c, s in scored if math.isfinite(s)]
-    if not finite:
+    ok, rule = within_pick_tolerance(candidates, settings, scale)
+    if not ok:
         return min(candidates, key=lambda c: c.complexity)
-    rule, best = _passing_rule(finite, settings)
-    limit = within_tolerance(best, settings, scale)
-    ok = sorted(((c, s) for c, s in finite if s <= limit), key=lambda cs: (cs[0].complexity, cs[1]))
-    first = next(c for c, _ in ok if rule(c))
+    first = next(c for c in ok if rule(c))
     if not by_degree:
         return first
     # of equally complex ones, the lower degree (module docstring); only these are measured by the rule
     low = degree(first.expression)
-    ties = sorted(((c, s, d) for c, s in ok if c.complexity == first.complexity and c is not first
+    ties = sorted(((c, _score(c), d) for c in ok if c.complexity == first.complexity and c is not first
                    and (d := degree(c.expression)) < low), key=lambda csd: (csd[2], csd[1]))
     return next((c for c, _, _ in ties if rule(c)), first)
 
