@@ -18,7 +18,8 @@ mean accelerations over the step, the state and rotor speeds those of the midpoi
 Raw sensor targets for the weak form (SensorTargetSettings.step_intervals: identification.weak_form's
 RAW_SENSOR_TARGETS) of a log with rotor speeds and commands: one row per step interval too, the gyro's
 difference over the step (its exact mean derivative) and the accelerometer's mean over it (its two ends
-averaged plus what the rotors' lag adds within the step: _interval_specific_force), the regressors those of
+averaged plus what the curvature of the thrust (the rotors' lag) and of the drag (the body velocity turning
+with the body) adds within the step: step_targets.sampled_step_means), the regressors those of
 the truth targets' rows (identification.step_targets, the step means of the rates and of R^T v; the targets
 not moved to the row state: that shift is fitted to the truth accelerations), and with them each step's
 path (aux `step_nodes`: the state at the step's two Gauss nodes), so that load_dataset can make each step two
@@ -46,7 +47,13 @@ from bridge.tlog import read_tlog
 from identification.log_gravity import log_gravity
 from identification.readers import RowFilter, make_dataset, rotor_model
 from identification.segmentation import SegmentationSettings, seconds_to_nearest
-from identification.step_targets import motor_lag_ratio, step_interval_rows, step_node_offsets
+from identification.step_targets import (
+    body_state_nodes,
+    motor_lag_ratio,
+    sampled_step_means,
+    step_interval_rows,
+    step_node_offsets,
+)
 from identification.table import Dataset
 from identification.targets import (
     STANDARD_GRAVITY,
@@ -282,21 +289,25 @@ def read_tlog_dataset(
             clipped = _clamped_imu(acc, gyro)
             steps.drop("IMU sample clamped at an end of the step (+-16 g / +-2000 deg/s)",
                        clipped[:-1] | clipped[1:])
+            nodes = step_node_offsets(vel, quat, rates, u, ratio, xi_mid, u_mid)
             r = rotation_matrix(xi_mid[:, 6], xi_mid[:, 7], xi_mid[:, 8])
-            f_b = _interval_specific_force(acc, u, u_mid, steps.keep_mask()[0])
+            ends = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
+            z = np.column_stack((u, rates, np.einsum("nji,nj->ni", ends, vel)))
+            keep = steps.keep_mask()[0]
+            f_b = sampled_step_means(acc, z, body_state_nodes(nodes, xi_mid, u_mid),
+                                     np.append(keep, False) | np.insert(keep, 0, False))
             tgt_mid = np.concatenate((np.einsum("nij,nj->ni", r, f_b) + np.array([0.0, 0.0, g]),
                                       np.diff(gyro, axis=0) / np.diff(t)[:, None]), axis=1)
             notes.append(
                 f"raw sensor targets (g = {g:g} m/s^2) over each 4 ms step, rows at step midpoints: the "
                 "gyro's difference over the step (its exact mean derivative there) and the accelerometer's "
-                "mean over it (its ends averaged plus the rotors' lag within the step); regressors at the "
-                f"midpoint under the held command (motor lag ratio {ratio:.6f} per step, estimated from the "
-                "log)"
+                "mean over it (its ends averaged plus the thrust's and the drag's curvature within the "
+                f"step); regressors at the midpoint under the held command (motor lag ratio {ratio:.6f} per "
+                "step, estimated from the log)"
             )
             side = {"ground_s": seconds_to_nearest(t_mid, rest_times)}
             if decimation == 1:  # each step's path: its rows become its two Gauss nodes (load_dataset)
-                side["step_nodes"] = step_node_offsets(vel, quat, rates, u, ratio, xi_mid, u_mid).reshape(
-                    len(t_mid), -1)
+                side["step_nodes"] = nodes.reshape(len(t_mid), -1)
             ds = make_dataset(path, "tlog", targets, t_mid, xi_mid, u_mid, tgt_mid, steps, notes, extra,
                               aux=side)
             if decimation == 1:  # consecutive rows share a sample: the targets' noise is correlated
@@ -350,26 +361,6 @@ def _interval_filter(filt: RowFilter, times: np.ndarray, rate_hz: float | None, 
     if rate_hz is not None:
         steps.drop(f"decimated to {rate_hz:g} Hz", (times[:-1] // 4000) % decimation != 0)
     return steps
-
-
-def _interval_specific_force(
-    acc: np.ndarray, u: np.ndarray, u_mid: np.ndarray, keep: np.ndarray
-) -> np.ndarray:
-    """The accelerometer's mean over each step (N-1,3 m/s^2 FRD) from its samples at the ends (N,3): their
-    average, plus what the rotors' lag adds within the step. The thrust follows u_i^2, whose step mean (the
-    rows' RMS speeds u_mid, N-1,4 rad/s) is not the average of its ends; the specific force's change per
-    change of each rotor's u_i^2 is fitted over the steps `keep` (least squares of the samples' step changes
-    on the squared speeds' step changes) and carries that curvature over."""
-    sq = u**2
-    ends = 0.5 * (sq[:-1] + sq[1:])
-    change, rise = np.diff(acc, axis=0), np.diff(sq, axis=0)
-    ok = keep & np.isfinite(change).all(axis=1) & np.isfinite(rise).all(axis=1)
-    mean = 0.5 * (acc[:-1] + acc[1:])
-    if ok.sum() < 10 * rise.shape[1]:
-        return mean
-    design = np.column_stack((np.ones(int(ok.sum())), rise[ok]))
-    slope = np.linalg.lstsq(design, change[ok], rcond=None)[0][1:]
-    return mean + (u_mid**2 - ends) @ slope
 
 
 def _clamped_imu(acc: np.ndarray, gyro: np.ndarray) -> np.ndarray:
