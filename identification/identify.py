@@ -52,7 +52,7 @@ from identification.collinearity import (
     terms_collinearity,
 )
 from identification.cross_validation import FoldedRows, attach_cross_validated, identify_on
-from identification.cv_polish import polish_by_cross_validation, thrust_twins
+from identification.cv_polish import move_candidate, polish_by_cross_validation, thrust_twins
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
@@ -65,9 +65,10 @@ from identification.metrics import LOSSES, table_metrics, weak_metrics
 from identification.model_file import TARGET_NAMES, BodyModel, Model, TargetModel, expression_to_string
 from identification.pareto import admissible, attach_holdout, excited, front_points, select
 from identification.physics_candidates import MINIMAL_TERMS, fit_terms, minimal_candidate, physics_candidates
-from identification.refit import refit_rows, structure_test
+from identification.refit import pool_screen, refit_rows, structure_test
 from identification.self_feedback import mark_self_feedback
 from identification.specification_pick import specification_line, specification_pick
+from identification.specification_search import SearchSpace, with_factors
 from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
 from identification.weak_noise import stacked_whitener, stated_whitener, uncertain_terms
@@ -332,7 +333,11 @@ def identify(
                          for part, mask, key in ((roles.fit, ok, "train"), (roles.pick, okp, "pick"))]
         if settings.selection.specification_pick and whiteners is not None:
             test = functools.partial(structure_test, parts=parts, whiteners=whiteners)
-            chosen, spec = specification_pick(chosen, candidates, settings.selection, scale, test)
+            space = None if folded is None else _search_space(candidates, extra, parts, whiteners, folded,
+                                                               loss, settings.selection, X[ok], y[ok], name)
+            chosen, spec = specification_pick(chosen, candidates, settings.selection, scale, test, space)
+            if not any(c is chosen for c in candidates):
+                candidates.append(chosen)
         flag = _excitation(name, candidates, (X[ok], y[ok]), loss, ops, settings, score)
         if flag is not None:
             chosen, line, out["not_excited"] = flag
@@ -512,6 +517,28 @@ def identify(
         targets_done, kind="learned", vehicle=vehicle, flights=flights, engine=engine_info, extra=extra,
         body=body,
     )
+
+
+def _search_space(candidates: list[Candidate], extra: list[sympy.Expr], parts: list, whiteners: list,
+                  folded: Any, loss: str, selection: SelectionSettings, X: np.ndarray, y: np.ndarray,
+                  target: str) -> SearchSpace:
+    """The specification search's space (identification.specification_search): every candidate's terms and the
+    polish's extra ones, with their factors (with_factors); a structure becomes a candidate as the
+    polish's moves do (fitted on the fit rows, its cross-validated loss on the folds, its self-feedback
+    measured)."""
+    pool: dict[sympy.Expr, None] = {}
+    for c in candidates:
+        pool.update(dict.fromkeys(term_shapes(c.expression)))
+    pool.update(dict.fromkeys(extra))
+
+    def make(shapes: list[sympy.Expr]) -> Candidate | None:
+        c = move_candidate(shapes, folded.terms_loss(shapes, loss), folded, loss, "specification-search")
+        if c is not None:
+            mark_self_feedback([c], X, y, target)
+        return c
+
+    steps = selection.specification_search
+    return SearchSpace(lambda: pool_screen(with_factors(list(pool)), parts, whiteners), make, steps)
 
 
 def _excitation(

@@ -26,6 +26,7 @@ from identification.collinearity import term_shapes
 from identification.library import Feature
 from identification.metrics import loss as loss_fn
 from identification.sparse import LeastSquaresProblem, sparse_expression
+from identification.specification_search import HausmanScreen
 from identification.weak_noise import RefitTest, Whitener, specification_test
 
 Rows = tuple[np.ndarray, np.ndarray, "sparse.spmatrix | None"]  # X (N,16), y (N,), weak operator or None
@@ -102,6 +103,28 @@ def structure_test(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
     if not _whitened(parts, used, whiteners):
         return None
     return specification_test([(a, b, whiteners[i]) for a, b, i in zip(plain_a, plain_b, used, strict=True)])
+
+
+def pool_screen(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
+                whiteners: Sequence[Whitener | None] | None) -> HausmanScreen | None:
+    """The specification search's screen (specification_search.HausmanScreen) of the terms shapes on every
+    part's weak rows (parts as refit_rows'), less the terms not finite on some part's rows and all but the
+    first of terms whose columns are equal; None when the rows have no weak operator or whitener."""
+    used = [i for i, (X, _, _) in enumerate(parts) if len(X)]
+    if not shapes or not _whitened(parts, used, whiteners):
+        return None
+    columns = []
+    for i in used:
+        X, _, op = parts[i]
+        columns.append(np.asarray(op @ expression_columns(list(shapes), X)))
+    finite = np.all([np.isfinite(c).all(axis=0) for c in columns], axis=0)
+    distinct: dict[bytes, int] = {}
+    for j in np.flatnonzero(finite):
+        distinct.setdefault(np.concatenate([c[:, j] for c in columns]).tobytes(), int(j))
+    keep = sorted(distinct.values())
+    return HausmanScreen.build([shapes[j] for j in keep], [
+        (c[:, keep], np.asarray(parts[i][2] @ parts[i][1], float), whiteners[i])
+        for c, i in zip(columns, used, strict=True)])
 
 
 def _part_columns(shapes: list[sympy.Expr], parts: Sequence[Rows]

@@ -15,7 +15,9 @@ beside the true structure is 0.53: the t rule cannot separate them and the test 
 So when the test rejects the pick's structure (p below weak_noise.SPECIFICATION_LEVEL) on the fit and pick
 rows, the candidates the pick's rule passes within its tolerance, at most one term larger than the pick,
 are tried simplest first, and the first the test does not reject is picked instead; when none, the pick
-stays. Rows without a stated noise (truth targets, logs without it) have no test and keep the pick.
+stays unless the specification search (identification.specification_search: terms added or put in
+another's place, from every candidate's terms) finds a structure the test passes and the pick's rule and
+tolerance take. Rows without a stated noise (truth targets, logs without it) have no test and keep the pick.
 """
 
 from __future__ import annotations
@@ -26,18 +28,22 @@ import sympy
 
 from identification.candidate import Candidate
 from identification.collinearity import term_shapes
+from identification.cv_polish import model_size
 from identification.engine_settings import SelectionSettings
 from identification.pareto import within_pick_tolerance
+from identification.specification_search import SearchSpace, search
 from identification.weak_noise import RefitTest
 
 StructureTest = Callable[[Sequence[sympy.Expr]], "RefitTest | None"]
 
 
 def specification_pick(chosen: Candidate, candidates: Sequence[Candidate], settings: SelectionSettings,
-                       scale: float, test: StructureTest) -> tuple[Candidate, dict | None]:
+                       scale: float, test: StructureTest, space: SearchSpace | None = None
+                       ) -> tuple[Candidate, dict | None]:
     """(the pick or the simplest equally good candidate whose structure the test does not reject, what was
     done: None when the pick stays untested or passes; module docstring). test: a structure's specification
-    test on the fit and pick rows (None when it cannot be made)."""
+    test on the fit and pick rows (None when it cannot be made); space: where the specification search
+    walks when no equally good candidate passes (None: no search)."""
     shapes = term_shapes(chosen.expression)
     first = test(shapes)
     if first is None or first.generalised:
@@ -58,7 +64,28 @@ def specification_pick(chosen: Candidate, candidates: Sequence[Candidate], setti
         if result is not None and result.generalised:
             record["picked"] = _summary(c, result)
             return c, record
-    return chosen, record
+    if space is None or space.steps <= 0:
+        return chosen, record
+    screen = space.screen()
+    if screen is None:
+        return chosen, record
+
+    def accept(terms: list[sympy.Expr]) -> tuple[Candidate, RefitTest] | None:
+        result = test(terms)
+        if result is None or not result.generalised:
+            return None
+        c = space.make(terms)
+        if not isinstance(c, Candidate):
+            return None
+        tied_now, rule_now = within_pick_tolerance([*candidates, c], settings, scale)
+        return (c, result) if any(t is c for t in tied_now) and rule_now(c) else None
+
+    found, asked = search(shapes, screen, space.steps, accept, model_size)
+    record["searched"] = {"pool": len(screen.terms), "checked": asked}
+    if found is None:
+        return chosen, record
+    record["picked"] = _summary(*found)
+    return found[0], record
 
 
 def _summary(c: Candidate, result: RefitTest) -> dict:
@@ -72,8 +99,15 @@ def specification_line(target: str, record: dict) -> str:
     rejected = record["rejected"]
     head = (f"note: {target}: the rows reject the structure the pick chose (Hausman's test of the "
             f"generalised fit, p = {rejected['p_value']:.2g})")
+    searched = record.get("searched")
     if "picked" in record:
         p_new, tried = record["picked"]["p_value"], record["tried"]
-        return f"{head}; picked an equally good one they do not reject (p = {p_new:.2g}; {tried} tried)"
-    return (f"{head}, and none of the {record['tried']} equally good candidates tried: the model may lack a "
-            "term the flight holds (its coefficients are the weak rows' own fit)")
+        if searched is None:
+            return f"{head}; picked an equally good one they do not reject (p = {p_new:.2g}; {tried} tried)"
+        return (f"{head}, as none of the {tried} equally good candidates; the specification search over "
+                f"{searched['pool']} terms found one they do not reject and the pick's rule takes (p = "
+                f"{p_new:.2g}): {record['picked']['expression']}")
+    also = "" if searched is None else (f", nor the specification search over {searched['pool']} terms "
+                                        f"({searched['checked']} structures checked)")
+    return (f"{head}, and none of the {record['tried']} equally good candidates tried{also}: the model may "
+            "lack a term the flight holds (its coefficients are the weak rows' own fit)")

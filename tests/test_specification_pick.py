@@ -99,3 +99,61 @@ def test_the_pick_moves_to_the_simplest_equally_good_structure_not_rejected():
     stays, record = specification_pick(chosen, [chosen, tie], settings, 1.0, lambda shapes: verdict(1e-4))
     assert stays is chosen and "picked" not in record and record["tried"] == 1
     assert "may lack a term" in specification_line("dwx", record)
+
+
+def test_the_screen_gives_the_exact_tests_p_value_for_any_subset():
+    """The search's screen (Gram matrices of the pool's weak columns) gives Hausman's test of any subset as
+    the test on the rows gives it."""
+    from identification.refit import pool_screen
+
+    parts, whiteners = tied_flight(1, seconds=30.0)
+    pool = [WZ, WZ * ROTOR_SUM, WZ**2, WZ**3, sympy.Integer(1)]
+    screen = pool_screen(pool, parts, whiteners)
+    assert screen is not None and screen.terms == pool
+    for subset in ([0], [1], [0, 1], [0, 2, 4], [1, 3], [0, 1, 2, 3, 4]):
+        exact = structure_test([pool[i] for i in subset], parts, whiteners)
+        p, _, _ = screen.p_value(subset)
+        assert exact is not None
+        assert np.isclose(p, exact.p_value, rtol=1e-5, atol=1e-300), (subset, p, exact.p_value)
+
+
+def test_the_search_adds_the_term_the_test_asks_for_when_no_candidate_passes():
+    """No equally good candidate passes: the specification search walks from the pick over the pool to a
+    structure the test does not reject, and takes it only when the pick's rule does (every term identified);
+    the model file's record says what it searched."""
+    from identification.refit import pool_screen
+    from identification.specification_search import SearchSpace
+
+    parts, whiteners = tied_flight(2)
+    pool = [WZ, WZ**2, WZ**3, sympy.Integer(1), WZ * ROTOR_SUM]
+    settings = SelectionSettings()
+    chosen = candidate(-0.003 * WZ, 5, 1.0)
+    test = lambda shapes: structure_test(shapes, parts, whiteners)  # noqa: E731
+    made = []
+
+    def space(t_ratio: float) -> SearchSpace:
+        def make(shapes):
+            made.append(frozenset(shapes))
+            return candidate(sympy.Add(*shapes), 3 * len(shapes), 1.0, t=t_ratio)
+        return SearchSpace(lambda: pool_screen(pool, parts, whiteners), make, 2)
+
+    picked, record = specification_pick(chosen, [chosen], settings, 1.0, test, space(10.0))
+    assert set(term for term in picked.expression.args) == {WZ, WZ * ROTOR_SUM}
+    assert record["searched"]["pool"] == len(pool) and record["picked"]["p_value"] >= 0.01
+    assert "specification search" in specification_line("dwz", record)
+    # the same structure, but its terms not identified: the pick stays
+    made.clear()
+    stays, record = specification_pick(chosen, [chosen], settings, 1.0, test, space(1.0))
+    assert stays is chosen and "picked" not in record and made
+    assert "nor the specification search" in specification_line("dwz", record)
+
+
+def test_the_search_pool_holds_each_products_factors():
+    """A flight's candidates may hold a term only beside a factor that barely varies (wy (u1 + .. + u4) for
+    wy): the search's pool adds each product less one factor, once, after the terms themselves."""
+    from identification.specification_search import with_factors
+
+    wx, wy = PRIMITIVE_SYMBOLS["wx"], PRIMITIVE_SYMBOLS["wy"]
+    pool = with_factors([WZ**2 * sympy.Abs(wx), wy * ROTOR_SUM, WZ, sympy.Integer(1), WZ**2])
+    assert pool[:5] == [WZ**2 * sympy.Abs(wx), wy * ROTOR_SUM, WZ, sympy.Integer(1), WZ**2]
+    assert set(pool[5:]) == {sympy.Abs(wx), wy, ROTOR_SUM} and len(pool) == 8
