@@ -285,8 +285,9 @@ class SelectionSettings:
     # the pick's (identification.specification_pick; weak rows with a stated noise only)
     specification_pick: bool = True
     # when no such candidate passes: at most this many steps of the specification search, each adding a
-    # term of any candidate's (or the polish's extra ones) or putting one in another's place, toward the
-    # structure the test rejects least; what it finds must pass the test, the pick's rule and tolerance
+    # term of any candidate's (or the polish's extra ones, or a factor of one) or putting one in another's
+    # place, to the structure whose generalised fit leaves the least residual; what it finds must pass the
+    # test, the pick's rule and tolerance
     # (identification.specification_search; 0: no search)
     specification_search: int = 3
     # that refit's standard errors go in the model file; a term whose standard error is above this fraction

@@ -6,19 +6,18 @@ hold a stand-in for one. Measured on realistic-sensor fang-chen-aero (seed 31, t
 rows), dwy as picked: p 5.6e-34; with wy added 6e-30, with wz^2 added 1e-40, with both 0.012 (the true
 structure 0.44): the test asks for two terms at once, which no tie and no one-term move gives.
 
-So the search walks from the pick over the pool (every candidate's terms and the polish's extra ones, and
-each product among them less one factor: with_factors), one move at a time (add a term, or put one in
-another's place), to the structure whose generalised fit leaves the least whitened residual (forward
-stepwise generalised least squares, the test its stopping rule), for at most
-SelectionSettings.specification_search steps. HausmanScreen scores every move from the pool's Gram
-matrices, in microseconds each. At each step the simplest structures the screen passes (then the best
-fitting) are checked by the exact test and then, as a candidate scored like the polish's moves, by the
-pick's own rule and tolerance (every term identified, the cross-validated loss within tolerance of the
-best): a term the test asks for but the flight does not pin down is never added. Walking to the structure
-the test rejects least instead took seed 31's dwy to wy (u1^2 + .. + u4^2), a stand-in that fits worse
-than wy, and on to wz^4 and four extras; a move that fits worse than where it starts is never offered (a
-structure that fits nothing, a constant in place of every term, passes the test: both fits agree on
-nothing).
+So the search walks from the pick over the pool (every candidate's terms and the polish's extra ones, and each
+product among them less one factor: with_factors), one move at a time (add a term, or put one in another's
+place), to the structure whose generalised fit leaves the least whitened residual (forward stepwise
+generalised least squares, the test its stopping rule), for at most SelectionSettings.specification_search
+steps. HausmanScreen scores every move from the pool's Gram matrices, in microseconds each. At each step the
+simplest structures the screen passes (then the best fitting) are checked by the exact test and then, as a
+candidate scored like the polish's moves, by the pick's own rule and tolerance (every term identified, the
+cross-validated loss within tolerance of the best): a term the test asks for but the flight does not pin down
+is never added. Walking to the structure the test rejects least instead took seed 31's dwy to wy (u1^2 + .. +
+u4^2), a stand-in that fits worse than wy, and on to wz^4: five extras in all (136 / 2 / 5); a move that fits
+worse than where it starts is never offered (a structure that fits nothing, a constant in place of every term,
+passes the test: both fits agree on nothing).
 """
 
 from __future__ import annotations
@@ -33,7 +32,7 @@ from scipy import stats
 
 from identification.weak_noise import SPECIFICATION_LEVEL, Whitener, column_scale
 
-TRIES_PER_STEP = 4  # the best-scored passing structures of a step checked by the exact test and the rule
+TRIES_PER_STEP = 4  # the simplest passing structures of a step checked by the exact test and the rule
 MAX_CONDITION = 1e10  # a subset's Gram matrix beyond this condition number does not determine its terms
 T = TypeVar("T")
 
@@ -85,32 +84,29 @@ class HausmanScreen:
             rows += len(y)
         return cls(list(terms), plain, plain_y, white, white_y, white_yy, noise, rows)
 
-    def p_value(self, subset: Sequence[int]) -> tuple[float, float, float]:
-        """(p, score, rss) of Hausman's test of the terms at subset: score orders structures past p's
-        underflow ((statistic - dof) / sqrt(2 dof), lower is better), rss is the generalised fit's whitened
-        residual sum of squares; (0, inf, inf) when the subset does not determine its coefficients."""
+    def p_value(self, subset: Sequence[int]) -> tuple[float, float]:
+        """(p, rss): Hausman's test's p-value of the terms at subset and the generalised fit's whitened
+        residual sum of squares; (0, inf) when the subset does not determine its coefficients."""
         s = np.asarray(subset)
         k = len(s)
         g, gw = self.plain[np.ix_(s, s)], self.white[np.ix_(s, s)]
         if not np.linalg.cond(g) < MAX_CONDITION:
-            return 0.0, float("inf"), float("inf")
+            return 0.0, float("inf")
         try:
             gi, gwi = np.linalg.inv(g), np.linalg.inv(gw)
         except np.linalg.LinAlgError:
-            return 0.0, float("inf"), float("inf")
+            return 0.0, float("inf")
         b_plain, b_gls = gi @ self.plain_y[s], gwi @ self.white_y[s]
         rss = float(self.white_yy - 2.0 * b_gls @ self.white_y[s] + b_gls @ gw @ b_gls)
         if self.rows <= k or not rss > 0.0:
-            return 0.0, float("inf"), float("inf")
+            return 0.0, float("inf")
         s2 = rss / (self.rows - k)
         v = s2 * (gi @ self.noise[np.ix_(s, s)] @ gi - gwi)
         lam, vec = np.linalg.eigh(0.5 * (v + v.T))
         keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
         proj = vec[:, keep].T @ (b_plain - b_gls)
         stat, dof = float(np.sum(proj * proj / lam[keep])), int(keep.sum())
-        if not dof:
-            return 1.0, -float("inf"), rss
-        return float(stats.chi2.sf(stat, dof)), (stat - dof) / np.sqrt(2.0 * dof), rss
+        return (float(stats.chi2.sf(stat, dof)) if dof else 1.0), rss
 
 
 def with_factors(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:
@@ -141,7 +137,7 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
     if len(current) != len(start):
         return None, 0
     asked, seen = 0, {frozenset(current)}
-    fit = screen.p_value(current)[2]
+    fit = screen.p_value(current)[1]
     for _ in range(steps):
         moves = []
         have = set(current)
@@ -155,17 +151,17 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
             if frozenset(m) in seen:
                 continue
             seen.add(frozenset(m))
-            p, score, rss = screen.p_value(m)
+            p, rss = screen.p_value(m)
             if rss <= fit:  # a swap that fits worse than where it starts would only pass by fitting less
-                scored.append((score, p, rss, m))
+                scored.append((p, rss, m))
         if not scored:
             return None, asked
-        passing = sorted((spm for spm in scored if spm[1] >= SPECIFICATION_LEVEL),
-                         key=lambda spm: (size([screen.terms[i] for i in spm[3]]), spm[2]))
+        passing = sorted((prm for prm in scored if prm[0] >= SPECIFICATION_LEVEL),
+                         key=lambda prm: (size([screen.terms[i] for i in prm[2]]), prm[1]))
         for *_, m in passing[:TRIES_PER_STEP]:
             asked += 1
             taken = accept([screen.terms[i] for i in m])
             if taken is not None:
                 return taken, asked
-        _, _, fit, current = min(scored, key=lambda spm: spm[2])
+        _, fit, current = min(scored, key=lambda prm: prm[1])
     return None, asked
