@@ -28,9 +28,8 @@ from typing import TypeVar
 
 import numpy as np
 import sympy
-from scipy import stats
 
-from identification.weak_noise import SPECIFICATION_LEVEL, Whitener, column_scale
+from identification.weak_noise import SPECIFICATION_LEVEL, Whitener, column_scale, hausman_statistic
 
 TRIES_PER_STEP = 4  # the simplest passing structures of a step checked by the exact test and the rule
 MAX_CONDITION = 1e10  # a subset's Gram matrix beyond this condition number does not determine its terms
@@ -101,12 +100,8 @@ class HausmanScreen:
         if self.rows <= k or not rss > 0.0:
             return 0.0, float("inf")
         s2 = rss / (self.rows - k)
-        v = s2 * (gi @ self.noise[np.ix_(s, s)] @ gi - gwi)
-        lam, vec = np.linalg.eigh(0.5 * (v + v.T))
-        keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
-        proj = vec[:, keep].T @ (b_plain - b_gls)
-        stat, dof = float(np.sum(proj * proj / lam[keep])), int(keep.sum())
-        return (float(stats.chi2.sf(stat, dof)) if dof else 1.0), rss
+        _, _, p = hausman_statistic(b_plain - b_gls, s2 * (gi @ self.noise[np.ix_(s, s)] @ gi), s2 * gwi)
+        return p, rss
 
 
 def with_factors(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:

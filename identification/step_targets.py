@@ -297,20 +297,19 @@ def sampled_step_means(
     (N,) at their own z, state (N,10)) says the mean over each step's path (its two Gauss nodes, nodes
     (2,N-1,10): body_state_nodes) adds to that average.
 
-    The ends' average (the trapezoid) misses the mean by the quantity's curvature over the step times
-    dt^2/12: the thrust's through the rotors' lag (the nodes hold the lag's exact mean square), and in a
-    tumble the body velocity's, which turns with the body (w x (w x v_b)), through the drag: measured on an
-    in-process tumble of fang-chen-buaa at up to 30 rad/s against an exact replay, the accelerometer's step
-    mean (the thrust's slope alone) 1e-3 .. 9e-3 m/s^2 RMS off, which the weak form reads as the drag's
+    The ends' average (the trapezoid) misses the mean by the quantity's curvature over the step times dt^2/12:
+    the thrust's through the rotors' lag (the nodes hold the lag's exact mean square), and in a tumble the
+    body velocity's, which turns with the body (w x (w x v_b)), through the drag: measured on in-process
+    tumbles against an exact replay (fang-chen-aero to 29 rad/s, fang-chen-buaa to 43), the accelerometer's
+    step mean (the thrust's slope alone) 1e-3 .. 9e-3 m/s^2 RMS off, which the weak form reads as the drag's
     curvature. Drag is odd in the velocity and quadratic in the speed, which no polynomial in v_b follows
     across v = 0, so the surrogate also holds the two laws of a body in air, |v_i| v_i per axis and |v| v_i
-    (_drag_basis): with them the error is the two nodes' own (fang-chen-aero 4e-5, 7e-5, 2e-4 m/s^2 RMS,
-    fx fy fz; the quadratic alone 6e-4, 1.3e-3, 1.6e-3). The surrogate only carries the curvature within a
-    step: the engines never see its columns."""
+    (_drag_basis): with them the error is the two nodes' own (fang-chen-aero 4e-5, 7e-5, 2e-4 m/s^2 RMS, fx fy
+    fz; the quadratic alone 6e-4, 1.3e-3, 1.6e-3). The surrogate only carries the curvature within a step: the
+    engines never see its columns."""
     y = np.asarray(samples, dtype=float)
     z = np.asarray(state, dtype=float)
-    scale = np.sqrt(np.nanmean(z**2, axis=0))
-    scale[~(scale > 0.0)] = 1.0
+    scale = _rms_scale(z)
     ends = _drag_basis(z / scale)
     along = 0.5 * (_drag_basis(nodes[0] / scale) + _drag_basis(nodes[1] / scale))
     shift = along - 0.5 * (ends[:-1] + ends[1:])
@@ -321,6 +320,13 @@ def sampled_step_means(
         if b is not None:
             out[:, j] += np.nan_to_num(shift @ b)
     return out
+
+
+def _rms_scale(z: np.ndarray) -> np.ndarray:
+    """Each column's RMS over its finite values (1 where that is not positive): the surrogates' units."""
+    scale = np.sqrt(np.nanmean(z**2, axis=0))
+    scale[~(scale > 0.0)] = 1.0
+    return scale
 
 
 def _drag_basis(z: np.ndarray) -> np.ndarray:
@@ -395,8 +401,7 @@ def _surrogate_columns(
     monomials of the physical quantities scaled by their RMS (not centred: u_i^2 is then the thrust's
     column, whose shift is nil as the rows hold the RMS speeds, and the t rule keeps or drops physical
     terms)."""
-    scale = np.sqrt(np.nanmean(state**2, axis=0))
-    scale[~(scale > 0.0)] = 1.0
+    scale = _rms_scale(state)
     basis = [_quadratic_basis((state + dev) / scale) for dev in paths]
     mean = 0.5 * (basis[0] + basis[1])
     return mean, mean - _quadratic_basis(state / scale)
@@ -502,8 +507,7 @@ def _rate_moment(
     c, d, _ = _lag_path(u[:-1], u[1:], r)
     nodes = [np.column_stack((c + d * r**tau, w[:-1] + tau * (w[1:] - w[:-1]),
                               v_b[:-1] + tau * (v_b[1:] - v_b[:-1]))) for tau in GAUSS_NODES]
-    scale = np.sqrt(np.nanmean(nodes[0] ** 2, axis=0))
-    scale[~(scale > 0.0)] = 1.0
+    scale = _rms_scale(nodes[0])
     b1, b2 = (_quadratic_basis(z / scale) for z in nodes)
     mean = 0.5 * (b1 + b2)
     moment = (b2 - b1) / (4.0 * np.sqrt(3.0))

@@ -195,15 +195,21 @@ def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> 
     s2 = float(resid @ resid / (len(yw) - k))
     v_gls = s2 * np.linalg.pinv(aw.T @ aw)
     v_plain = estimate_covariance(np.linalg.pinv(a / scale), [w for _, _, w in parts], s2)
-    d = b_plain - b_gls
+    stat, dof, p = hausman_statistic(b_plain - b_gls, v_plain, v_gls)
+    se = (np.sqrt(np.maximum(np.diag(v), 0.0)) / scale for v in (v_plain, v_gls))
+    return RefitTest(stat, dof, p, b_plain / scale, b_gls / scale, *se)
+
+
+def hausman_statistic(d: np.ndarray, v_plain: np.ndarray, v_gls: np.ndarray) -> tuple[float, int, float]:
+    """(statistic, dof, p) of Hausman's test of the difference d (k,) of two fits' coefficients whose
+    covariances are v_plain and v_gls (k, k): d's quadratic form on the positive part of their difference
+    (eigenvalues above 1e-9 of the largest), chi-squared with that many degrees of freedom (p 1 with none)."""
     lam, vec = np.linalg.eigh(v_plain - v_gls)
     keep = lam > 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
     proj = vec[:, keep].T @ d
     stat = float(np.sum(proj * proj / lam[keep]))
     dof = int(keep.sum())
-    p = float(stats.chi2.sf(stat, dof)) if dof else 1.0
-    se = (np.sqrt(np.maximum(np.diag(v), 0.0)) / scale for v in (v_plain, v_gls))
-    return RefitTest(stat, dof, p, b_plain / scale, b_gls / scale, *se)
+    return stat, dof, (float(stats.chi2.sf(stat, dof)) if dof else 1.0)
 
 
 def estimate_covariance(weights: np.ndarray, whiteners: list[Whitener], s2: float) -> np.ndarray:
