@@ -538,7 +538,8 @@ def _search_space(candidates: list[Candidate], extra: list[sympy.Expr], parts: l
         return c
 
     steps = selection.specification_search
-    return SearchSpace(lambda: pool_screen(with_factors(list(pool)), parts, whiteners), make, steps)
+    return SearchSpace(lambda start: pool_screen(with_factors([*pool, *start]), parts, whiteners, keep=start),
+                       make, steps)
 
 
 def _excitation(

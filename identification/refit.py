@@ -106,10 +106,12 @@ def structure_test(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
 
 
 def pool_screen(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
-                whiteners: Sequence[Whitener | None] | None) -> HausmanScreen | None:
+                whiteners: Sequence[Whitener | None] | None, keep: Sequence[sympy.Expr] = ()
+                ) -> HausmanScreen | None:
     """The specification search's screen (specification_search.HausmanScreen) of the terms shapes on every
-    part's weak rows (parts as refit_rows'), less the terms not finite on some part's rows and all but the
-    first of terms whose columns are equal; None when the rows have no weak operator or whitener."""
+    part's weak rows (parts as refit_rows'), less the terms not finite on some part's rows and all but one
+    of terms whose columns are equal: the one in keep (the search's start, which must stay in its pool),
+    else the first; None when the rows have no weak operator or whitener."""
     used = [i for i, (X, _, _) in enumerate(parts) if len(X)]
     if not shapes or not _whitened(parts, used, whiteners):
         return None
@@ -119,7 +121,8 @@ def pool_screen(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
         columns.append(np.asarray(op @ expression_columns(list(shapes), X)))
     finite = np.all([np.isfinite(c).all(axis=0) for c in columns], axis=0)
     distinct: dict[bytes, int] = {}
-    for j in np.flatnonzero(finite):
+    kept = set(keep)
+    for j in sorted(np.flatnonzero(finite), key=lambda j: shapes[j] not in kept):  # keep's terms first
         distinct.setdefault(np.concatenate([c[:, j] for c in columns]).tobytes(), int(j))
     keep = sorted(distinct.values())
     return HausmanScreen.build([shapes[j] for j in keep], [

@@ -66,7 +66,7 @@ def specification_pick(chosen: Candidate, candidates: Sequence[Candidate], setti
             return c, record
     if space is None or space.steps <= 0:
         return chosen, record
-    screen = space.screen()
+    screen = space.screen(shapes)
     if screen is None:
         return chosen, record
 

@@ -38,10 +38,11 @@ T = TypeVar("T")
 
 @dataclass(frozen=True)
 class SearchSpace:
-    """What the search walks over: its screen (built when first asked for; None: no search), how a
-    structure becomes a candidate scored like the pick's (None: it cannot), and at most how many steps."""
+    """What the search walks over: its screen of a pool holding the start's terms (built when first asked
+    for, given the start; None: no search), how a structure becomes a candidate scored like the pick's
+    (None: it cannot), and at most how many steps."""
 
-    screen: Callable[[], HausmanScreen | None]
+    screen: Callable[[Sequence[sympy.Expr]], HausmanScreen | None]
     make: Callable[[list[sympy.Expr]], object | None]
     steps: int
 

@@ -135,7 +135,7 @@ def test_the_search_adds_the_term_the_test_asks_for_when_no_candidate_passes():
         def make(shapes):
             made.append(frozenset(shapes))
             return candidate(sympy.Add(*shapes), 3 * len(shapes), 1.0, t=t_ratio)
-        return SearchSpace(lambda: pool_screen(pool, parts, whiteners), make, 2)
+        return SearchSpace(lambda start: pool_screen(pool, parts, whiteners, keep=start), make, 2)
 
     picked, record = specification_pick(chosen, [chosen], settings, 1.0, test, space(10.0))
     assert set(term for term in picked.expression.args) == {WZ, WZ * ROTOR_SUM}
@@ -146,6 +146,36 @@ def test_the_search_adds_the_term_the_test_asks_for_when_no_candidate_passes():
     stays, record = specification_pick(chosen, [chosen], settings, 1.0, test, space(1.0))
     assert stays is chosen and "picked" not in record and made
     assert "nor the specification search" in specification_line("dwz", record)
+
+
+def test_the_search_starts_from_the_picks_terms_when_the_pool_holds_their_equals():
+    """A term of the pick whose column equals an earlier pool term's on these rows (wz u2 and wz u1 when the
+    four rotors turn alike) stays in the search's pool in that term's place, so the search still walks from
+    the pick: here to the term the test asks for (wz beside wz u2, the true structure on these rows)."""
+    from identification.refit import pool_screen
+    from identification.specification_search import SearchSpace
+
+    parts, whiteners = tied_flight(2)
+    u2 = PRIMITIVE_SYMBOLS["u2"]
+    pool = [WZ * U1, WZ**2, WZ, WZ * u2]
+    screens = []
+
+    def screen(start):
+        screens.append(pool_screen(pool, parts, whiteners, keep=start))
+        return screens[-1]
+
+    def make(shapes):
+        return candidate(sympy.Add(*shapes), 3 * len(shapes), 1.0)
+
+    test = lambda shapes: structure_test(shapes, parts, whiteners)  # noqa: E731
+    chosen = candidate(-7e-4 * WZ * u2, 5, 1.0)
+    picked, record = specification_pick(chosen, [chosen], SelectionSettings(), 1.0, test,
+                                        SearchSpace(screen, make, 2))
+    assert set(picked.expression.args) == {WZ, WZ * u2}, picked.expression
+    assert screens[0].terms == [WZ**2, WZ, WZ * u2]  # wz u1 gave way to the pick's equal term
+    assert record["searched"]["checked"] >= 1
+    # without the start, the first of two equal columns stays
+    assert pool_screen(pool, parts, whiteners).terms == [WZ * U1, WZ**2, WZ]
 
 
 def test_the_search_pool_holds_each_products_factors():
