@@ -17,7 +17,9 @@ rows, the candidates the pick's rule passes within its tolerance, at most one te
 are tried simplest first, and the first the test does not reject is picked instead; when none, the pick
 stays unless the specification search (identification.specification_search: terms added or put in
 another's place, from every candidate's terms) finds a structure the test passes and the pick's rule and
-tolerance take. Rows without a stated noise (truth targets, logs without it) have no test and keep the pick.
+tolerance take; when it finds none, the model file and the terminal say where its walk ended (the terms it
+added, the best fit at each step, and the test's p there): what the rows ask for most. Rows without a stated
+noise (truth targets, logs without it) have no test and keep the pick.
 """
 
 from __future__ import annotations
@@ -80,9 +82,14 @@ def specification_pick(chosen: Candidate, candidates: Sequence[Candidate], setti
         tied_now, rule_now = within_pick_tolerance([*candidates, c], settings, scale)
         return (c, result) if any(t is c for t in tied_now) and rule_now(c) else None
 
-    found, asked = search(shapes, screen, space.steps, accept, model_size)
-    record["searched"] = {"pool": len(screen.terms), "checked": asked}
+    found, walk = search(shapes, screen, space.steps, accept, model_size)
+    record["searched"] = {"pool": len(screen.terms), "checked": walk.asked}
     if found is None:
+        added = [str(t) for t in walk.terms if t not in shapes]
+        if added:  # the terms that, one step at a time, fit the rows best: what they ask for most
+            record["searched"]["walked_to"] = {
+                "added": added, "left_out": [str(t) for t in shapes if t not in walk.terms],
+                "p_value": float(f"{walk.p_value:.4g}")}
         return chosen, record
     record["picked"] = _summary(*found)
     return found[0], record
@@ -107,7 +114,12 @@ def specification_line(target: str, record: dict) -> str:
         return (f"{head}, as none of the {tried} equally good candidates; the specification search over "
                 f"{searched['pool']} terms found one they do not reject and the pick's rule takes (p = "
                 f"{p_new:.2g}): {record['picked']['expression']}")
-    also = "" if searched is None else (f", nor the specification search over {searched['pool']} terms "
-                                        f"({searched['checked']} structures checked)")
+    also = ""
+    if searched is not None:
+        walked = searched.get("walked_to")
+        went = "" if walked is None else (f"; its walk, the best fit at each step, added "
+                                          f"{', '.join(walked['added'])}, p = {walked['p_value']:.2g}")
+        also = (f", nor the specification search over {searched['pool']} terms ({searched['checked']} "
+                f"structures checked{went})")
     return (f"{head}, and none of the {record['tried']} equally good candidates tried{also}: the model may "
             "lack a term the flight holds (its coefficients are the weak rows' own fit)")

@@ -121,19 +121,33 @@ def with_factors(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:
     return list(out)
 
 
+@dataclass(frozen=True)
+class Walk:
+    """Where a search's walk went: the structure it ended at (the best fitting of its last step), that
+    structure's p-value on the screen, and how many structures accept was asked about."""
+
+    terms: list[sympy.Expr]
+    p_value: float
+    asked: int
+
+
 def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
            accept: Callable[[list[sympy.Expr]], T | None],
-           size: Callable[[list[sympy.Expr]], int] = len) -> tuple[T | None, int]:
+           size: Callable[[list[sympy.Expr]], int] = len) -> tuple[T | None, Walk]:
     """(what accept returns for the first structure it takes, walking from start over the screen's pool:
-    module docstring, or None; how many structures accept was asked about). accept: the exact test, the
-    pick's rule and its tolerance on a structure's terms (None: not taken); size: a structure's
-    complexity (the passing structures of a step are offered simplest first, then best fitting)."""
+    module docstring, or None; where the walk went). accept: the exact test, the pick's rule and its
+    tolerance on a structure's terms (None: not taken); size: a structure's complexity (the passing
+    structures of a step are offered simplest first, then best fitting)."""
     index = {t: i for i, t in enumerate(screen.terms)}
     current = [index[t] for t in start if t in index]
     if len(current) != len(start):
-        return None, 0
+        return None, Walk(list(start), 0.0, 0)
     asked, seen = 0, {frozenset(current)}
-    fit = screen.p_value(current)[1]
+    p_now, fit = screen.p_value(current)
+
+    def walk() -> Walk:
+        return Walk([screen.terms[i] for i in current], p_now, asked)
+
     for _ in range(steps):
         moves = []
         have = set(current)
@@ -151,13 +165,13 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
             if rss <= fit:  # a swap that fits worse than where it starts would only pass by fitting less
                 scored.append((p, rss, m))
         if not scored:
-            return None, asked
+            return None, walk()
         passing = sorted((prm for prm in scored if prm[0] >= SPECIFICATION_LEVEL),
                          key=lambda prm: (size([screen.terms[i] for i in prm[2]]), prm[1]))
         for *_, m in passing[:TRIES_PER_STEP]:
             asked += 1
             taken = accept([screen.terms[i] for i in m])
             if taken is not None:
-                return taken, asked
-        _, fit, current = min(scored, key=lambda prm: prm[1])
-    return None, asked
+                return taken, walk()
+        p_now, fit, current = min(scored, key=lambda prm: prm[1])
+    return None, walk()

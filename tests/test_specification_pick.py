@@ -146,6 +146,19 @@ def test_the_search_adds_the_term_the_test_asks_for_when_no_candidate_passes():
     stays, record = specification_pick(chosen, [chosen], settings, 1.0, test, space(1.0))
     assert stays is chosen and "picked" not in record and made
     assert "nor the specification search" in specification_line("dwz", record)
+    # and where its walk went: first the term the test asks for, which the rule did not take
+    walked = record["searched"]["walked_to"]
+    assert walked["added"][0] == str(WZ * ROTOR_SUM) and len(walked["added"]) == 2
+    assert f"its walk, the best fit at each step, added {WZ * ROTOR_SUM}" in specification_line("dwz", record)
+    # a pool without the term: nothing passes, and the record says where the walk ended and its p
+    lacking = SearchSpace(lambda start: pool_screen(pool[:4], parts, whiteners, keep=start),
+                          lambda shapes: None, 2)
+    stays, record = specification_pick(chosen, [chosen], settings, 1.0, test, lacking)
+    walked = record["searched"]["walked_to"]
+    assert stays is chosen and record["searched"]["checked"] == 0
+    assert walked["p_value"] < 0.01 and len(walked["added"]) == 2
+    assert str(WZ * ROTOR_SUM) not in walked["added"]
+    assert "its walk, the best fit at each step, added " in specification_line("dwz", record)
 
 
 def test_the_search_starts_from_the_picks_terms_when_the_pool_holds_their_equals():
