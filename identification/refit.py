@@ -121,12 +121,12 @@ def pool_screen(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],
         columns.append(np.asarray(op @ expression_columns(list(shapes), X)))
     finite = np.all([np.isfinite(c).all(axis=0) for c in columns], axis=0)
     distinct: dict[bytes, int] = {}
-    kept = set(keep)
-    for j in sorted(np.flatnonzero(finite), key=lambda j: shapes[j] not in kept):  # keep's terms first
+    first = set(keep)
+    for j in sorted(np.flatnonzero(finite), key=lambda j: shapes[j] not in first):  # keep's terms first
         distinct.setdefault(np.concatenate([c[:, j] for c in columns]).tobytes(), int(j))
-    keep = sorted(distinct.values())
-    return HausmanScreen.build([shapes[j] for j in keep], [
-        (c[:, keep], np.asarray(parts[i][2] @ parts[i][1], float), whiteners[i])
+    pool = sorted(distinct.values())
+    return HausmanScreen.build([shapes[j] for j in pool], [
+        (c[:, pool], np.asarray(parts[i][2] @ parts[i][1], float), whiteners[i])
         for c, i in zip(columns, used, strict=True)])
 
 

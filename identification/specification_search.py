@@ -123,8 +123,9 @@ def with_factors(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:
 
 @dataclass(frozen=True)
 class Walk:
-    """Where a search's walk went: the structure it ended at (the best fitting of its last step), that
-    structure's p-value on the screen, and how many structures accept was asked about."""
+    """Where a search's walk went: the structure it ended at (the best fitting of its last step; when
+    accept took one, the structure that step started from), that structure's p-value on the screen, and how
+    many structures accept was asked about."""
 
     terms: list[sympy.Expr]
     p_value: float
