@@ -189,8 +189,7 @@ def step_interval_rows(
     a_mid = a_mean
     dw_mean = (w[1:] - w[:-1]) / dt
     mean_sq, first = lagged_square_moments(u[:-1], u[1:], ratio)
-    ends = rotation_matrix(*euler_from_quaternions(q).T)
-    v_b = np.einsum("nji,nj->ni", ends, v)  # body velocity at each sample
+    v_b = sample_body_velocity(v, q)
     xi[:, 9:12] -= _rate_moment(dw_mean, (u, w, v_b), ratio, mean_sq, first, dt[:, 0])
     if gravity is not None:
         r = rotation_matrix(xi[:, 6], xi[:, 7], xi[:, 8])
@@ -236,6 +235,13 @@ def _node_deviations(
     return out[0], out[1]
 
 
+def sample_body_velocity(velocity: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
+    """Body velocity R^T v (N,3 FRD m/s) at each sample from its NED velocity (N,3 m/s) and attitude
+    quaternion (N,4: w, x, y, z, body FRD -> NED)."""
+    ends = rotation_matrix(*euler_from_quaternions(np.asarray(quaternion, dtype=float)).T)
+    return np.einsum("nji,nj->ni", ends, np.asarray(velocity, dtype=float))
+
+
 def step_node_offsets(
     velocity: np.ndarray,
     quaternion: np.ndarray,
@@ -258,8 +264,7 @@ def step_node_offsets(
     (identification.weak_form.node_groups).
     """
     v, w, u = (np.asarray(a, dtype=float) for a in (velocity, rates, speeds))
-    ends = rotation_matrix(*euler_from_quaternions(np.asarray(quaternion, dtype=float)).T)
-    v_b = np.einsum("nji,nj->ni", ends, v)
+    v_b = sample_body_velocity(v, quaternion)
     r_row = rotation_matrix(xi_rows[:, 6], xi_rows[:, 7], xi_rows[:, 8])
     out = np.zeros((len(xi_rows), 2, 16))
     devs = _node_deviations(u[:-1], u[1:], u_rows, ratio, w[1:] - w[:-1], v_b[1:] - v_b[:-1])

@@ -50,6 +50,7 @@ from identification.segmentation import SegmentationSettings, seconds_to_nearest
 from identification.step_targets import (
     body_state_nodes,
     motor_lag_ratio,
+    sample_body_velocity,
     sampled_step_means,
     step_interval_rows,
     step_node_offsets,
@@ -291,8 +292,7 @@ def read_tlog_dataset(
                        clipped[:-1] | clipped[1:])
             nodes = step_node_offsets(vel, quat, rates, u, ratio, xi_mid, u_mid)
             r = rotation_matrix(xi_mid[:, 6], xi_mid[:, 7], xi_mid[:, 8])
-            ends = rotation_matrix(euler[:, 0], euler[:, 1], euler[:, 2])
-            z = np.column_stack((u, rates, np.einsum("nji,nj->ni", ends, vel)))
+            z = np.column_stack((u, rates, sample_body_velocity(vel, quat)))
             keep = steps.keep_mask()[0]
             f_b = sampled_step_means(acc, z, body_state_nodes(nodes, xi_mid, u_mid),
                                      np.append(keep, False) | np.insert(keep, 0, False))
