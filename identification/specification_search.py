@@ -18,6 +18,13 @@ is never added. Walking to the structure the test rejects least instead took see
 u4^2), a stand-in that fits worse than wy, and on to wz^4: five extras in all (136 / 2 / 5); a move that fits
 worse than where it starts is never offered (a structure that fits nothing, a constant in place of every term,
 passes the test: both fits agree on nothing).
+
+A walk only grows its structure, so the true term beside the pick's stand-ins for it (vb |v| beside vb,
+vb ub^2 and vb wb^2, its expansion) passes the test but is not identified, and the rule declines it. So a
+passing structure the rule declines is reduced, general to specific: one term fewer at a time, each time the
+one whose removal fits least worse, while the test still passes and it fits at least as well as the start
+(reductions), and each reduction is offered to the rule in turn. Measured on seed 41's realistic aero (fy):
+the pick's stand-ins gave way to vb |v| (p 0.49), 135 / 1 / 10 -> 136 / 0 / 7.
 """
 
 from __future__ import annotations
@@ -143,11 +150,20 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
     current = [index[t] for t in start if t in index]
     if len(current) != len(start):
         return None, Walk(list(start), 0.0, 0)
-    asked, seen = 0, {frozenset(current)}
+    asked, seen, offered = 0, {frozenset(current)}, set()
     p_now, fit = screen.p_value(current)
+    start_fit = fit
 
     def walk() -> Walk:
         return Walk([screen.terms[i] for i in current], p_now, asked)
+
+    def offer(m: list[int]) -> T | None:
+        nonlocal asked
+        if frozenset(m) in offered:
+            return None
+        offered.add(frozenset(m))
+        asked += 1
+        return accept([screen.terms[i] for i in m])
 
     for _ in range(steps):
         moves = []
@@ -170,9 +186,28 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
         passing = sorted((prm for prm in scored if prm[0] >= SPECIFICATION_LEVEL),
                          key=lambda prm: (size([screen.terms[i] for i in prm[2]]), prm[1]))
         for *_, m in passing[:TRIES_PER_STEP]:
-            asked += 1
-            taken = accept([screen.terms[i] for i in m])
-            if taken is not None:
-                return taken, walk()
+            for s in (m, *reductions(m, screen, start_fit)):
+                taken = offer(s)
+                if taken is not None:
+                    return taken, walk()
         p_now, fit, current = min(scored, key=lambda prm: prm[1])
     return None, walk()
+
+
+def reductions(m: Sequence[int], screen: HausmanScreen, fit: float) -> list[list[int]]:
+    """From a structure the test passes (pool indices m), one term fewer at a time: each time the term whose
+    removal leaves the least whitened residual, while the test still passes and the residual stays at most
+    fit (the search's start's); the structures in order, largest first (general to specific)."""
+    out, current = [], list(m)
+    while len(current) > 1:
+        best = None
+        for i in range(len(current)):
+            sub = current[:i] + current[i + 1:]
+            p, rss = screen.p_value(sub)
+            if p >= SPECIFICATION_LEVEL and rss <= fit and (best is None or rss < best[0]):
+                best = (rss, sub)
+        if best is None:
+            break
+        current = best[1]
+        out.append(current)
+    return out

@@ -200,3 +200,41 @@ def test_the_search_pool_holds_each_products_factors():
     pool = with_factors([WZ**2 * sympy.Abs(wx), wy * ROTOR_SUM, WZ, sympy.Integer(1), WZ**2])
     assert pool[:5] == [WZ**2 * sympy.Abs(wx), wy * ROTOR_SUM, WZ, sympy.Integer(1), WZ**2]
     assert set(pool[5:]) == {sympy.Abs(wx), wy, ROTOR_SUM} and len(pool) == 8
+
+
+def test_the_search_reduces_a_passing_structure_to_what_the_rule_takes():
+    """General to specific: a structure the test passes but whose terms the rule does not take (the true
+    term beside the pick's stand-ins, which share its column) loses one term at a time, the one whose
+    removal fits least worse, while the test still passes and it fits at least as well as the pick; the
+    search takes the first the rule takes. Here the pick holds two stand-ins beside wz, so no single move
+    reaches the true structure, and every structure on the way passes the test."""
+    from identification.refit import pool_screen
+    from identification.specification_search import SearchSpace, reductions
+
+    parts, whiteners = tied_flight(2)
+    pool = [WZ, WZ**2, WZ**3, sympy.Integer(1), WZ * ROTOR_SUM]
+    stand_ins = {WZ**2, WZ**3}
+    test = lambda shapes: structure_test(shapes, parts, whiteners)  # noqa: E731
+
+    def make(shapes):  # the rule: a stand-in beside the true term leaves neither identified
+        return candidate(sympy.Add(*shapes), 3 * len(shapes), 1.0, t=1.0 if stand_ins & set(shapes) else 10.0)
+
+    def space() -> SearchSpace:
+        return SearchSpace(lambda start: pool_screen(pool, parts, whiteners, keep=start), make, 2)
+
+    chosen = candidate(-0.003 * WZ + 1e-5 * WZ**2 + 1e-6 * WZ**3, 9, 1.0)
+    picked, record = specification_pick(chosen, [chosen], SelectionSettings(), 1.0, test, space())
+    assert set(picked.expression.args) == {WZ, WZ * ROTOR_SUM}, picked.expression
+    assert record["rejected"]["p_value"] < 0.01 <= record["picked"]["p_value"]
+    # each reduction passes the test and fits at least as well as where it started
+    screen = pool_screen(pool, parts, whiteners)
+    full = [0, 1, 2, 4]
+    start_p, start_fit = screen.p_value([0, 1, 2])
+    steps = reductions(full, screen, start_fit)
+    assert start_p < 0.01 and steps and [len(s) for s in steps] == list(range(3, 3 - len(steps), -1))
+    for s in steps:
+        p, rss = screen.p_value(s)
+        assert p >= 0.01 and rss <= start_fit
+    assert {pool[i] for i in steps[1]} == {WZ, WZ * ROTOR_SUM}
+    # nothing fits as well as the start: no reduction
+    assert reductions(full, screen, 0.0) == []
