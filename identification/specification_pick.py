@@ -16,10 +16,11 @@ So when the test rejects the pick's structure (p below weak_noise.SPECIFICATION_
 rows, the candidates the pick's rule passes within its tolerance, at most one term larger than the pick,
 are tried simplest first, and the first the test does not reject is picked instead; when none, the pick
 stays unless the specification search (identification.specification_search: terms added or put in
-another's place, from every candidate's terms) finds a structure the test passes and the pick's rule and
-tolerance take; when it finds none, the model file and the terminal say where its walk ended (the terms it
-added, the best fit at each step, and the test's p there): what the rows ask for most. Rows without a stated
-noise (truth targets, logs without it) have no test and keep the pick.
+another's place, from every candidate's terms, and a passing structure the rule declines reduced one term at
+a time) finds a structure the test passes and the pick's rule and tolerance take; when it finds none, the
+model file and the terminal say where its walk ended (the terms it added, the best fit at each step, and the
+test's p there): what the rows ask for most. Rows without a stated noise (truth targets, logs without it)
+have no test and keep the pick.
 """
 
 from __future__ import annotations
