@@ -56,7 +56,7 @@ from identification.feature_space import sign_patterns
 from identification.metrics import loss as loss_fn
 from identification.model_file import INPUT_NAMES, complexity
 from identification.paired_loss import paired_loss_t
-from identification.pareto import admissible, select, within_tolerance
+from identification.pareto import admissible, select, terms_identified, within_tolerance
 from identification.refit import terms_candidate
 from identification.sparse import single_threaded_blas
 
@@ -132,7 +132,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             expression = chosen.expression if state is current else None
             scored += _scored_moves(state, expression, pool, folded, kind, seen)
             if ruled:
-                tied += [_mask(t, bits) for t in tied_subsets(state, folded, selection.max_vif)]
+                tied += [_mask(t, bits) for t in tied_subsets(state, folded, selection)]
         # a move the pick can choose is within its tolerance of the best identified loss, which is at most
         # the current pick's (whether a move is identified is measured only when the pick asks), and not
         # worse than the pick beyond the rows' noise
@@ -158,21 +158,29 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     return chosen
 
 
-def tied_subsets(state: list[sympy.Expr], folded: FoldedRows, max_vif: float) -> list[frozenset[sympy.Expr]]:
+def tied_subsets(state: list[sympy.Expr], folded: FoldedRows,
+                 selection: SelectionSettings) -> list[frozenset[sympy.Expr]]:
     """The model `state` and each of its one-term removals whose largest VIF on the rows the pick measures
-    on (FoldedRows.identification) exceeds max_vif; none when the model's own does not. A term's VIF only
-    grows with the terms beside it (its regression on more columns explains at least as much), so every
-    move that keeps such a set fails the pick's VIF rule. A pick its engine did not measure (the library
+    on (FoldedRows.identification) fails the pick's VIF rule (above max_vif, its weakest t ratio short of
+    what that VIF asks: pareto.terms_identified); none when the model's own passes. A term's VIF only
+    grows with the terms beside it (its regression on more columns explains at least as much) and its
+    standard error with it, so a move that keeps such a set fails the rule too (as good as always: a term
+    added may lower the residual, and so the noise behind the t ratios, on rows with no stated noise). A
+    pick its engine did not measure (the library
     engine's) may hold a tied family: on an ArduCopter flight near hover with the yaw held, az held 24
     thrust terms times products of sin and cos of the angles, where cos(psi) barely varies; its one-term
     swaps, some 11,700 within the pick's tolerance and each tied, were fitted and measured one by one
     (`quadsr identify --targets az` on that flight: 211 s wall, 30 s with them left out, the same model)."""
-    if not folded.identification(state)[1] > max_vif:
+    def tied(shapes: list[sympy.Expr]) -> bool:
+        t, vif = folded.identification(shapes)
+        return vif is not None and vif > selection.max_vif and not terms_identified(t, vif, selection)
+
+    if not tied(state):
         return []
     out = [_key(state)]
     for i in range(len(state)):
         rest = state[:i] + state[i + 1:]
-        if rest and folded.identification(rest)[1] > max_vif:
+        if rest and tied(rest):
             out.append(_key(rest))
     return out
 

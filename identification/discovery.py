@@ -177,6 +177,7 @@ class DiscoveryEngine:
         self.timings: dict[str, float] = {}
         self.stats: dict[str, object] = {}
         self._features: dict[int, np.ndarray] = {}  # id(candidate) -> its feature indices in the space
+        self._path_terms = self.settings.max_terms  # the sparse paths' length (_longer_paths)
         self.notes: list[str] = []  # identifiability notes of the last fit (identify prints them)
 
     def build_space(self, X: np.ndarray) -> FeatureSpace:
@@ -284,6 +285,7 @@ class DiscoveryEngine:
         series: tuple | None = None  # the state the first hub law was added to
         before: tuple | None = None  # the state the last hub law was added to
         rnd, last = 0, max(s.rounds, 1)  # rounds run while rnd < last (a hub law adds rounds)
+        self._path_terms = s.max_terms  # the sparse paths' length; grows while the round's pick reaches it
         while rnd < last:
             law_now = False
             if fit_law:
@@ -352,6 +354,8 @@ class DiscoveryEngine:
                 progress(0.7 * (rnd + 1) / max(s.rounds, 1),
                          f"round {rnd + 1}: pool {len(pool)}, pick loss {best.holdout_loss:.3g}")
             stale = stale + 1 if previous is not None and not _better(best, previous, scale) else 0
+            if self._longer_paths(best):  # the longer paths get their rounds (within the budget)
+                stale = 0
             stop = not law_now and (stale >= max(s.patience, 1) or _exact(best, scale))
             if law_now:
                 stale = 0
@@ -385,9 +389,10 @@ class DiscoveryEngine:
             self.timings["operon"] = time.perf_counter() - op_start
         if candidates and s.polish_passes > 0:
             polish_start = time.perf_counter()
-            if s.polish_merge:  # the model the VIF rule alone sets aside, rewritten by merges (_merge_repair)
+            if s.polish_merge:  # the model past the VIF cap, rewritten by merges (_merge_repair)
                 loose = select(candidates, self._no_vif_rule(), scale=scale)
-                if not admissible(loose, self.selection) and admissible(loose, self._no_vif_rule()):
+                capped = dataclasses.replace(self.selection, vif_rule="cap")
+                if not admissible(loose, capped) and admissible(loose, self._no_vif_rule()):
                     candidates += self._merge_repair(loose, columns, F, y, X, Xh, yh, loss, scale)
             pick = select(candidates, self.selection, scale=scale)
             candidates += self._polish(pick, [int(i) for i in pool], columns, F, y, X, Xh, yh, loss, scale,
@@ -749,8 +754,9 @@ class DiscoveryEngine:
         loss: str,
         scale: float,
     ) -> list[Candidate]:
-        """Merge repair of a model the VIF rule sets aside (DiscoverySettings.polish_merge): two of its terms
-        merged into one feature so that the model passes the pick's rules. A term's VIF among
+        """Merge repair of a model past the VIF cap max_vif (DiscoverySettings.polish_merge; the scaled VIF
+        rule may pass it on strong evidence, pareto.terms_identified, and the pick then weighs both): two of
+        its terms merged into one feature so that the model passes the pick's rules. A term's VIF among
         the terms of one family (one factor times combinations of the rotors) depends on how the family is
         written: closed-loop aero's dwz picked by the t rule alone, wz (u1+u2+u3+u4) + u2 wz + u4 wz + wz
         (coefficients of u2 wz and u4 wz equal), has VIF 199 on wz (u1+u2+u3+u4); the same fit with u2 wz and
@@ -846,6 +852,18 @@ class DiscoveryEngine:
             return None
         return overlap_lag(self.weak[0])
 
+    def _longer_paths(self, best: Candidate | None) -> bool:
+        """Lengthen the sparse paths by max_terms / 2 (at most to max_terms_limit) when the round's pick
+        (by loss alone) holds as many terms as they reach: the paths, not the rows, ended it; whether they
+        were lengthened."""
+        s = self.settings
+        size = len(self._features.get(id(best), ())) if best is not None else 0
+        if size < self._path_terms or self._path_terms >= s.max_terms_limit:
+            return False
+        self._path_terms = min(self._path_terms + max(s.max_terms // 2, 1), s.max_terms_limit)
+        self.stats["path_terms"] = self._path_terms
+        return True
+
     def _sparsify(
         self,
         exprs: list[sympy.Expr],
@@ -878,11 +896,14 @@ class DiscoveryEngine:
         exprs = [sympy.Integer(1), *exprs]
         feats = [Feature(f"x{k}", e, "const" if k == 0 else groups[k - 1]) for k, e in enumerate(exprs)]
         nodes = [complexity(e) for e in exprs]
-        sets = sparse_active_sets(problem, self.sparse, None, [f.group for f in feats], nodes,
+        paths = self.sparse
+        if paths.forward_terms != self._path_terms:
+            paths = dataclasses.replace(paths, forward_terms=self._path_terms)
+        sets = sparse_active_sets(problem, paths, None, [f.group for f in feats], nodes,
                                   None if not start else np.asarray(start, int) + 1,
                                   None if addable is None else np.concatenate(([True], addable)))
         by_size: dict[int, list[tuple[float, int, np.ndarray]]] = {}
-        limit = self.settings.max_terms + 1  # + the constant
+        limit = self._path_terms + 1  # + the constant
         for k, active in enumerate(sets):
             if active.sum() > limit:  # larger models are never kept: not solved either
                 continue

@@ -96,6 +96,10 @@ class DiscoverySettings:
     rounds: int = 8  # at most this many screen -> sparsify -> residual rounds
     patience: int = 2  # stop after this many rounds in a row without a better held-out pick (0 acts as 1)
     max_terms: int = 20  # forward-selection path length in the sparsifier; larger models are not kept
+    # ... unless a round's pick holds max_terms terms: the paths then grow by max_terms / 2 a time, up to
+    # this many (the physics, not the budget, says how many terms a target has: a heavy vehicle with a CG
+    # offset and every aerodynamic effect has 36 in its wx'; session 63)
+    max_terms_limit: int = 60
     # each round, one more forward path that starts from the last round's pick (its terms in the pool) and
     # adds the pool's features to it, never a height feature: a height law is fitted as a whole, by the paths
     # from no terms (identification.sparse.forward_path initial=). The paths from no terms re-choose every
@@ -204,6 +208,9 @@ class DiscoverySettings:
     hub_law_min_height: float = 0.25
 
 
+VIF_RULES = ("scaled", "cap")  # SelectionSettings.vif_rule
+
+
 @dataclass(frozen=True)
 class SelectionSettings:
     """The pick on held-out data: the smallest candidate with loss <= best*(1+rel_tol) + abs_tol*std(y)."""
@@ -220,8 +227,11 @@ class SelectionSettings:
     # t ratios use each term's standard error under that noise (collinearity.term_t_ratios), not the
     # residual's effective sample size; false: the effective sample size everywhere (before session 28)
     stated_noise_t: bool = True
-    # nor is one whose terms the flight barely separates: a term with a VIF above max_vif on the fit rows
+    # nor is one whose terms the flight barely separates: a term with a VIF above max_vif on the fit rows,
+    # unless its t ratio is at least min_t VIF / max_vif (vif_rule "scaled", identification.pareto
+    # terms_identified; "cap": no VIF above max_vif, as before session 63)
     max_vif: float = 100.0
+    vif_rule: str = "scaled"
     # nor is one whose self-feedback (d target / d own state, identification.self_feedback) is positive
     # beyond this many standard errors: anti-damping
     max_self_feedback_t: float = 1.0
@@ -341,6 +351,9 @@ def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
     if settings.selection.cv_polish_beam < 0:
         raise UserError(f"{where}: key 'selection.cv_polish_beam': must be 0 or more",
                         hint="the models beside the pick the polish moves on from per round, e.g. 2")
+    if settings.selection.vif_rule not in VIF_RULES:
+        raise UserError(f"{where}: key 'selection.vif_rule': unknown rule {settings.selection.vif_rule!r}",
+                        hint=f"known: {', '.join(VIF_RULES)}")
     if not settings.selection.report_relative_se > 0:
         raise UserError(f"{where}: key 'selection.report_relative_se': must be above 0",
                         hint="the fraction of a coefficient its standard error may reach unnamed, e.g. 0.1")

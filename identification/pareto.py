@@ -23,9 +23,18 @@ has no constant: a term the flight cannot tell from a sensor's bias is not ident
 measured on (the fit rows; the fit and pick rows when the pick cross-validates,
 SelectionSettings.identify_on_pick_rows) is below `min_t` (identification.collinearity.term_identification;
 measured by the engines that can, else None), or a term whose VIF there is above `max_vif` (the flight barely
-separates it from the others), as long as one candidate that passes exists. On closed-loop data the regressors
-are collinear and a model of tied terms with cancelling coefficients can have the lowest pick loss by fitting
-the targets' errors; it is not a model of the vehicle, and a controller derived from it can crash. Likewise a
+separates it from the others) unless its t ratio is at least min_t VIF / max_vif (with the model's
+weakest t and largest VIF: `terms_identified`), as long as one candidate that passes exists. On closed-loop
+data the regressors are collinear and a model of tied terms with cancelling coefficients can have the lowest
+pick loss by fitting the targets' errors; it is not a model of the vehicle, and a controller derived from it
+can crash. What a missing or misshapen term leaves along a term's own direction (the part of its column no
+other term holds, 1/VIF of its variance) is divided by that part's variance, so the error it puts in the
+coefficient grows with the VIF: a term past max_vif needs that much more evidence, not none. With the hard
+cap (vif_rule "cap", before session 63) a heavier vehicle's noise-free closed-loop flight, whose per-rotor
+terms are pinned down at t in the thousands, had every candidate holding them refused and the rest of the
+model took their place (wx' 28 of its 36 monomials, the residual 450x the true structure's); with the VIF's
+square root instead of the VIF itself, realistic-sensor fang-chen-aero's fy took a tied expansion of its
+frame drag (vb, vb^3, vb|vb|, vb ub^2, vb wb^2 at VIF 437) for vb|v|. Likewise a
 candidate whose self-feedback is positive beyond `max_self_feedback_t` standard errors
 (identification.self_feedback: anti-damping, which no rigid body with rotors and drag has) is set aside while
 one that passes exists.
@@ -179,8 +188,20 @@ def excited(candidates: Sequence[Candidate], constant_loss: float, settings: Sel
 def _identified(c: Candidate, settings: SelectionSettings) -> bool:
     """False when the rows it is measured on do not identify the candidate's terms (module docstring)."""
     c.measured()
-    t_ok = c.weakest_t is None or c.weakest_t >= settings.min_t
-    return t_ok and (c.largest_vif is None or c.largest_vif <= settings.max_vif)
+    return terms_identified(c.weakest_t, c.largest_vif, settings)
+
+
+def terms_identified(weakest_t: float | None, largest_vif: float | None, settings: SelectionSettings) -> bool:
+    """The pick's identification rule on a model's weakest t ratio and largest VIF (None: not measured):
+    t >= min_t, and a VIF above max_vif asks for t >= min_t VIF / max_vif ("scaled"; "cap": no VIF
+    above max_vif)."""
+    if weakest_t is not None and weakest_t < settings.min_t:
+        return False
+    if largest_vif is None or largest_vif <= settings.max_vif:
+        return True
+    if settings.vif_rule == "cap" or weakest_t is None:
+        return False
+    return bool(weakest_t >= settings.min_t * largest_vif / settings.max_vif)
 
 
 def front_points(candidates: Sequence[Candidate], chosen: Candidate | None = None) -> list[ParetoPoint]:

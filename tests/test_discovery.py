@@ -167,6 +167,21 @@ def test_patience_rounds_without_a_better_pick_end_the_search_on_noisy_data():
     assert picks[0] == picks[1]
 
 
+def test_the_sparse_paths_grow_while_the_pick_reaches_their_end():
+    # rotor drag, a weak rotor 3 and frame drag: dwz holds more features than a path of max_terms = 2
+    # reaches; the paths stopped there give a wrong model, grown (max_terms_limit) the true one
+    effects = Effects(rotor_drag=2e-4, rotor_scale=(1.0, 1.0, 0.92, 1.0), frame_drag=0.02)
+    truth = body_expressions(VEHICLE, effects)["dwz"]
+    capped, engine, _, _ = _fit(effects, "dwz", settings=DiscoverySettings(max_terms=2, max_terms_limit=2),
+                                budget=0)
+    assert "path_terms" not in engine.stats
+    assert set(expression_terms(capped.expression)) != set(expression_terms(truth))
+    grown, engine, _, _ = _fit(effects, "dwz", settings=DiscoverySettings(max_terms=2, max_terms_limit=12),
+                               budget=0)
+    assert 2 < engine.stats["path_terms"] <= 12
+    _assert_same_terms(grown.expression, truth)
+
+
 @pytest.mark.parametrize("rounds", [1, 2])
 def test_the_rounds_never_exceed_their_budget(rounds):
     # noisy targets and a patience longer than the budget: only the budget stops the rounds (a count, so the

@@ -67,14 +67,15 @@ def _fit(engine, space, columns, Xt, yt, Xh, yh, shapes):
 
 def test_merge_repair_rewrites_a_rotor_family_in_the_signed_sum_basis() -> None:
     """y = a wz (u1+u2+u3+u4) + b wz (u1-u2+u3-u4) + c wz: written with u2 wz and u4 wz for the balanced
-    sum (the same span but one direction more), the t rule passes the model and the VIF rule sets it aside;
-    the repair merges u2 wz and u4 wz into wz (u1-u2+u3-u4): the true structure, passing both rules, its
-    coefficients recovered, and the pick takes it."""
+    sum (the same span but one direction more), the t rule passes the model and the VIF rule sets it aside
+    (VIF 926 asks for t 46, it has 28); the repair merges u2 wz and u4 wz into wz (u1-u2+u3-u4): the true
+    structure, passing both rules, its coefficients recovered, and the pick takes it."""
     truth = -3.3e-4 * wz * SUM - 3.0e-5 * wz * BALANCED - 2.7e-3 * wz
     engine, space, columns, F, Xt, yt, Xh, yh = _closed_loop(truth)
     tied = _fit(engine, space, columns, Xt, yt, Xh, yh, [wz * SUM, u2 * wz, u4 * wz, wz])
     sel = engine.selection
-    assert tied.weakest_t >= sel.min_t and tied.largest_vif > sel.max_vif and not admissible(tied, sel)
+    assert tied.weakest_t >= sel.min_t and tied.largest_vif > sel.max_vif
+    assert not admissible(tied, sel) and not admissible(tied, dataclasses.replace(sel, vif_rule="cap"))
     scale = float(np.std(yh))
     out = engine._merge_repair(tied, columns, F, yt, Xt, Xh, yh, "absolute", scale)
     assert len(out) == 1 and admissible(out[0], sel)

@@ -9,7 +9,7 @@ import sympy
 from identification.candidate import Candidate
 from identification.collinearity import offset_t_ratio, term_identification, term_t_ratios, weakest_t
 from identification.engine_settings import SelectionSettings
-from identification.pareto import select
+from identification.pareto import select, terms_identified
 from identification.weak_noise import Whitener
 
 
@@ -60,15 +60,32 @@ def test_the_pick_sets_aside_unidentified_candidates_while_one_passes():
 
 
 def test_the_pick_sets_aside_terms_the_flight_barely_separates():
-    # noise-free closed loop: a signed rotor combination written as three tied terms fits (t ~1e9) but the
-    # flight hardly separates them (VIF above max_vif); a candidate of separable terms is picked instead
+    # closed loop: a signed rotor combination written as three tied terms fits best but the flight hardly
+    # separates them (VIF above max_vif); with too little evidence for that collinearity (t below
+    # min_t VIF / max_vif) a candidate of separable terms is picked instead
     settings = SelectionSettings()
+    tied = _candidate(30, 0.010, 19.9)
+    tied.largest_vif = 400.0  # asks for t >= 5 x 4 = 20
+    sound = _candidate(12, 0.013, 1e9)
+    sound.largest_vif = 4.0
+    assert select([tied, sound], settings) is sound
+    tied.weakest_t = 20.1
+    assert select([tied, sound], settings) is tied
+    assert select([tied, sound], SelectionSettings(max_vif=1000.0)) is tied
+
+
+def test_noise_free_tied_terms_pinned_down_pass_unless_the_vif_is_capped():
+    # noise-free closed loop: the tied terms fit (t ~1e9), pinned down far beyond what their VIF asks; the
+    # hard cap (vif_rule "cap", the rule before session 63) sets them aside all the same
     tied = _candidate(30, 0.010, 1e9)
     tied.largest_vif = 101.5
     sound = _candidate(12, 0.013, 1e9)
     sound.largest_vif = 4.0
-    assert select([tied, sound], settings) is sound
-    assert select([tied, sound], SelectionSettings(max_vif=1000.0)) is tied
+    assert select([tied, sound], SelectionSettings()) is tied
+    assert select([tied, sound], SelectionSettings(vif_rule="cap")) is sound
+    assert not terms_identified(None, 101.5, SelectionSettings())  # no t ratio: the cap stands
+    assert terms_identified(None, 99.0, SelectionSettings())
+    assert not terms_identified(4.9, 1.0, SelectionSettings())
 
 
 def test_term_identification_reports_the_largest_vif():
