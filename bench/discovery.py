@@ -194,7 +194,7 @@ CASES: tuple[Case, ...] = (
     Case("sitl heavy vehicle", sitl_vehicle="heavy-650"),
     # the heavy vehicle with every effect, a CG offset and a weak rotor (session 63: a vehicle the engine was
     # not tuned on), open loop and in closed loop from the ground (its ground effect too)
-    Case("sitl heavy vehicle, every effect", sitl_vehicle="heavy-650-aero"),
+    Case("sitl heavy vehicle with every effect", sitl_vehicle="heavy-650-aero"),
     # closed loop from the ground: the closed-loop profile (hover stabiliser on a 2 m Lissajous path with a
     # turning heading, per-motor PRBS); the controller ties rotor speeds to angles and rates, so the
     # regressors are collinear and the engine must still return the physics' terms
@@ -202,7 +202,7 @@ CASES: tuple[Case, ...] = (
          profiles=("closed-loop", "closed-loop")),
     Case("sitl closed loop fang-chen-aero", sitl_vehicle="fang-chen-aero", open_loop=False,
          profiles=("closed-loop", "closed-loop")),
-    Case("sitl closed loop heavy vehicle, every effect", sitl_vehicle="heavy-650-aero", open_loop=False,
+    Case("sitl closed loop heavy vehicle with every effect", sitl_vehicle="heavy-650-aero", open_loop=False,
          profiles=("closed-loop", "closed-loop")),
     # realistic sensors, targets from the IMU: ours is scored in the weak form (quadsr identify's default on
     # sensor targets) as `discovery-weak`, beside the point Savitzky-Golay targets
