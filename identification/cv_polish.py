@@ -164,13 +164,13 @@ def tied_subsets(state: list[sympy.Expr], folded: FoldedRows,
     on (FoldedRows.identification) fails the pick's VIF rule (above max_vif, its weakest t ratio short of
     what that VIF asks: pareto.terms_identified); none when the model's own passes. A term's VIF only
     grows with the terms beside it (its regression on more columns explains at least as much) and its
-    standard error with it, so a move that keeps such a set fails the rule too (as good as always: a term
-    added may lower the residual, and so the noise behind the t ratios, on rows with no stated noise). A
-    pick its engine did not measure (the library
-    engine's) may hold a tied family: on an ArduCopter flight near hover with the yaw held, az held 24
-    thrust terms times products of sin and cos of the angles, where cos(psi) barely varies; its one-term
-    swaps, some 11,700 within the pick's tolerance and each tied, were fitted and measured one by one
-    (`quadsr identify --targets az` on that flight: 211 s wall, 30 s with them left out, the same model)."""
+    standard error with it, so a move that keeps such a set fails the rule too (nearly always: on rows with
+    no stated noise a term added may lower the residual, the noise behind the t ratios). A pick its engine
+    did not measure (the library engine's) may hold a tied family: on an ArduCopter flight near hover with
+    the yaw held, az held 24 thrust terms times products of sin and cos of the angles, where cos(psi)
+    barely varies; its one-term swaps, some 11,700 within the pick's tolerance and each tied, were fitted
+    and measured one by one (`quadsr identify --targets az` on that flight: 211 s wall, 30 s with them left
+    out, the same model)."""
     def tied(shapes: list[sympy.Expr]) -> bool:
         t, vif = folded.identification(shapes)
         return vif is not None and vif > selection.max_vif and not terms_identified(t, vif, selection)
