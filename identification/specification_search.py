@@ -29,7 +29,8 @@ the pick's stand-ins gave way to vb |v| (p 0.49), 135 / 1 / 10 -> 136 / 0 / 7.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import itertools
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -186,7 +187,7 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
         passing = sorted((prm for prm in scored if prm[0] >= SPECIFICATION_LEVEL),
                          key=lambda prm: (size([screen.terms[i] for i in prm[2]]), prm[1]))
         for *_, m in passing[:TRIES_PER_STEP]:
-            for s in (m, *reductions(m, screen, start_fit)):
+            for s in itertools.chain([m], reduced(m, screen, start_fit)):  # reduced only when m is declined
                 taken = offer(s)
                 if taken is not None:
                     return taken, walk()
@@ -198,7 +199,12 @@ def reductions(m: Sequence[int], screen: HausmanScreen, fit: float) -> list[list
     """From a structure the test passes (pool indices m), one term fewer at a time: each time the term whose
     removal leaves the least whitened residual, while the test still passes and the residual stays at most
     fit (the search's start's); the structures in order, largest first (general to specific)."""
-    out, current = [], list(m)
+    return list(reduced(m, screen, fit))
+
+
+def reduced(m: Sequence[int], screen: HausmanScreen, fit: float) -> Iterator[list[int]]:
+    """reductions' structures one at a time, each computed when the one before is declined."""
+    current = list(m)
     while len(current) > 1:
         best = None
         for i in range(len(current)):
@@ -207,7 +213,6 @@ def reductions(m: Sequence[int], screen: HausmanScreen, fit: float) -> list[list
             if p >= SPECIFICATION_LEVEL and rss <= fit and (best is None or rss < best[0]):
                 best = (rss, sub)
         if best is None:
-            break
+            return
         current = best[1]
-        out.append(current)
-    return out
+        yield current
