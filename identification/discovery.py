@@ -52,7 +52,7 @@ from identification.feature_space import (
     grow_unary,
     power_unit,
 )
-from identification.hub_law import HUB_PRIMITIVES, HubLaw, fit_hub_law
+from identification.hub_law import HUB_LAW_SHARES, HUB_PRIMITIVES, HubLaw, fit_hub_law, thrust_shares
 from identification.library import Feature
 from identification.metrics import LOSSES
 from identification.metrics import loss as loss_fn
@@ -112,6 +112,10 @@ def check_settings(settings: DiscoverySettings) -> None:
                         f"{settings.hub_law_min_height}",
                         hint="the lowest hub height allowed, as a fraction of the CG's height: 0.25; 0: any "
                              "hub above the ground")
+    if settings.hub_law_shares not in HUB_LAW_SHARES:
+        raise UserError("discovery settings: key 'hub_law_shares' must be one of "
+                        f"{', '.join(HUB_LAW_SHARES)}, got {settings.hub_law_shares!r}",
+                        hint="thrust: each rotor's far-field thrust term; arms: the fitted hubs' arms")
     if not 0.0 <= settings.abs_sign_share <= 1.0:
         raise UserError(f"discovery settings: key 'abs_sign_share' must be in [0, 1], got "
                         f"{settings.abs_sign_share}", hint="0.05: |x| only where x reaches both signs")
@@ -511,6 +515,10 @@ class DiscoveryEngine:
         start = np.asarray(space.laws[-1].offsets) if space.laws else None
         arm = {"fx": "force", "fy": "force", "fz": "force", "dwx": "roll", "dwy": "pitch"}.get(self._target) \
             if s.hub_law_shared else None
+        if arm is not None and s.hub_law_shares == "thrust":
+            # the ground multiplies each rotor's own thrust: its share is the pick's far-field u_i^2 term
+            shares = thrust_shares(best.expression)
+            arm = arm if shares is None else shares / np.max(np.abs(shares))
         fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
                              s.hub_law_airspeed or (s.hub_law_refit_airspeed and bool(space.laws)), arm,
                              s.hub_law_min_height)

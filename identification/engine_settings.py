@@ -198,6 +198,11 @@ class DiscoverySettings:
     # FRD; dwz keeps a law per rotor). K coefficients in place of 4K: a law per rotor was free to take up
     # other effects that differ from rotor to rotor (closed-loop fang-chen-aero: wy''s law 25 % off).
     hub_law_shared: bool = True
+    # each rotor's share in the shared law: "thrust", the pick's own far-field coefficient of u_i^2 in the
+    # target (the ground multiplies each rotor's own thrust, so a weaker rotor's share is smaller and a torque
+    # target's share carries the rotor's arm as the data give it), or "arms" (the fitted hubs' arms, one
+    # thrust for every rotor; the rule before session 64, and the rule where the pick holds no u_i^2 term)
+    hub_law_shares: str = "thrust"
     # no law whose hub comes nearer the ground than this fraction of the CG's height at some row of the fit
     # rows: its 1/H_i^k columns are then a spike there that fits the target's errors, not a ground effect
     # (identification.hub_law.MIN_HUB_HEIGHT_FRACTION; a stage of the fit stops at the first iterate that

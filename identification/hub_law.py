@@ -66,6 +66,8 @@ from identification.body_frame import PRIMITIVE_SYMBOLS
 # the primitives a hub law reads, in this order (its input columns): height (m), gravity direction
 # (FRD), rotor speeds (rad/s), then body velocity (m/s FRD) and rates (rad/s FRD) for the hubs' airspeed
 HUB_PRIMITIVES: tuple[str, ...] = ("h", "gx", "gy", "u1", "u2", "u3", "u4", "ub", "vb", "wx", "wy", "wz")
+# how a shared law splits among the rotors (DiscoverySettings.hub_law_shares; thrust_shares)
+HUB_LAW_SHARES: tuple[str, ...] = ("thrust", "arms")
 
 
 @dataclass(frozen=True)
@@ -274,7 +276,7 @@ def fit_hub_law(
     max_evaluations: int = 400,
     start: np.ndarray | None = None,
     airspeed: bool = False,
-    arm: str | None = None,
+    arm: str | np.ndarray | None = None,
     min_height: float = MIN_HUB_HEIGHT_FRACTION,
 ) -> HubLaw | None:
     """The hub law that, beside `rest` (N', m: the model's other terms and a constant), best fits y (N',) in
@@ -285,7 +287,8 @@ def fit_hub_law(
     start: the offsets (4, 3) m to start from, all twelve fitted (None: every hub at the CG, the in-plane
     arms fitted first, then all twelve: module docstring); airspeed: the hubs' in-plane airspeed terms
     too, all twelve offsets refit with them in a last stage; arm: one law shared by the rotors, each
-    rotor's share its arm for "force" (1), "roll" (-r_iy) or "pitch" (r_ix) (None: a law per rotor).
+    rotor's share its arm for "force" (1), "roll" (-r_iy) or "pitch" (r_ix), or given (4,): each rotor's
+    share fixed, such as its far-field thrust's coefficient in the target (None: a law per rotor).
     None when no finite fit, or when a stage reaches a hub nearer the ground than min_height of the CG's
     height at some row (hubs_reach_ground) or an offset at the box bound (offsets_at_bound): the stage stops
     there and the later stages are not run."""
@@ -298,6 +301,8 @@ def fit_hub_law(
     def arms(r: np.ndarray) -> np.ndarray:
         """Each rotor's share of the target per unit of its law (4,): 1 (a force), its moment arm -r_y
         (roll) or r_x (pitch), m: the law is then one per-rotor law, the same for every rotor."""
+        if not isinstance(arm, str):
+            return np.asarray(arm, float)
         r = r.reshape(4, 3)
         return {"force": np.ones(4), "roll": -r[:, 1], "pitch": r[:, 0]}[arm]
 
@@ -349,7 +354,7 @@ def fit_hub_law(
             a = arms(r)
             thrust, air = np.outer(a, b[:K]), (np.outer(a, b[K:2 * K]) if with_airspeed else None)
         D = table.slopes(r, thrust, air)
-        if arm in ("roll", "pitch"):  # a rotor's share is its arm: -r_iy (roll) or r_ix (pitch)
+        if isinstance(arm, str) and arm in ("roll", "pitch"):  # a share that is the arm: -r_iy or r_ix
             j, sign = (1, -1.0) if arm == "roll" else (0, 1.0)
             for i, (block, air_block) in enumerate(table.blocks(r)):
                 value = block @ b[:K] + (air_block @ b[K:2 * K] if with_airspeed else 0.0)
@@ -427,3 +432,19 @@ def fit_hub_law(
         b = np.concatenate([np.outer(a, block).ravel() for block in b.reshape(-1, powers)])
     rows = [tuple(float(v) for v in row) for row in b.reshape(-1, powers)]
     return HubLaw(offsets, tuple(rows[:4]), tuple(rows[4:]))
+
+
+def thrust_shares(expression: sympy.Expr) -> np.ndarray | None:
+    """Each rotor's far-field thrust in a model of one target (4,): the coefficients of its pure u_i^2 terms
+    (target unit per (rad/s)^2), terms holding the height left out; None when it has none."""
+    s = PRIMITIVE_SYMBOLS
+    rotors = {s[f"u{i + 1}"] ** 2: i for i in range(4)}
+    shares = np.zeros(4)
+    for term in sympy.Add.make_args(expression):
+        if s["h"] in term.free_symbols:  # the height series or a law: what the shares are for
+            continue
+        for part in sympy.Add.make_args(sympy.expand(term)):
+            coefficient, rest = part.as_coeff_Mul()
+            if rest in rotors:
+                shares[rotors[rest]] += float(coefficient)
+    return shares if np.any(shares != 0.0) else None
