@@ -127,10 +127,15 @@ def within_tolerance(best: float, settings: SelectionSettings, scale: float = 1.
 def pick_limit(candidates: Sequence[Candidate], settings: SelectionSettings, scale: float = 1.0) -> float:
     """The pick's tolerance limit over `candidates` (select's: within_tolerance of the lowest held-out loss
     among those the pick compares); inf when none has a finite one."""
+    best = pick_best(candidates, settings)
+    return within_tolerance(best, settings, scale) if math.isfinite(best) else best
+
+
+def pick_best(candidates: Sequence[Candidate], settings: SelectionSettings) -> float:
+    """The lowest held-out loss among the candidates the pick compares (those its rule passes: select);
+    inf when none has a finite one."""
     finite = [(c, s) for c in candidates if math.isfinite(s := _score(c))]
-    if not finite:
-        return float("inf")
-    return within_tolerance(_passing_rule(finite, settings)[1], settings, scale)
+    return _passing_rule(finite, settings)[1] if finite else float("inf")
 
 
 def within_pick_tolerance(

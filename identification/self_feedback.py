@@ -34,6 +34,7 @@ from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns, pri
 from identification.candidate import Candidate
 from identification.collinearity import effective_rows, term_shapes
 from identification.model_file import SYMBOLS
+from identification.rows_cache import cached
 
 # target -> own state: ("x", column of X) or ("body", body axis 0..2) for the body-frame specific force
 OWN_STATE: dict[str, tuple[str, int]] = {
@@ -113,7 +114,10 @@ def mark_self_feedback(candidates: Sequence[Candidate], X: np.ndarray, y: np.nda
     X = np.asarray(X, dtype=float)
     y = np.asarray(y, dtype=float)
     h = _step(X, target)
-    moved = (_moved(X, target, h), _moved(X, target, -h), h)
+    # the moved rows kept while X lives: a caller marking candidates one at a time (the polish, the
+    # specification search) then evaluates their terms on the same arrays, whose columns are kept too
+    moved = (cached(X, ("self_feedback", target, h), lambda: _moved(X, target, h)),
+             cached(X, ("self_feedback", target, -h), lambda: _moved(X, target, -h)), h)
     own = OWN_SYMBOL[target]
     for c in candidates:
         if not c.expression.has(own):  # no term of its own state: no self-feedback
