@@ -288,7 +288,8 @@ def fit_hub_law(
     arms fitted first, then all twelve: module docstring); airspeed: the hubs' in-plane airspeed terms
     too, all twelve offsets refit with them in a last stage; arm: one law shared by the rotors, each
     rotor's share its arm for "force" (1), "roll" (-r_iy) or "pitch" (r_ix), or given (4,): each rotor's
-    share fixed, such as its far-field thrust's coefficient in the target (None: a law per rotor).
+    share fixed, such as its far-field thrust's coefficient in the target (None: a law per rotor); a law
+    shared by the arms starts where a free law ends (the arms at the CG are none), the others at the CG.
     None when no finite fit, or when a stage reaches a hub nearer the ground than min_height of the CG's
     height at some row (hubs_reach_ground) or an offset at the box bound (offsets_at_bound): the stage stops
     there and the later stages are not run."""
@@ -366,8 +367,10 @@ def fit_hub_law(
     bound = float(np.median(inputs[:, 0]))
     if not np.isfinite(bound) or bound <= 0.0:
         return None
-    if arm is not None and start is None:
-        # every hub at the CG has no moment arm: a shared torque law starts where the free law ends
+    if isinstance(arm, str) and start is None:
+        # every hub at the CG has no moment arm: a law shared by the arms starts where the free law ends (one
+        # whose shares are given starts at the CG, as the free law does: on a closed loop of heavy-650-aero,
+        # seed 47, fz's free law reached the ground rule and there was no law)
         free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, min_height=min_height)
         if free is None:
             return None
