@@ -279,6 +279,7 @@ def fit_hub_law(
     arm: str | np.ndarray | None = None,
     min_height: float = MIN_HUB_HEIGHT_FRACTION,
     from_cg: bool = False,
+    basis: np.ndarray | None = None,
 ) -> HubLaw | None:
     """The hub law that, beside `rest` (N', m: the model's other terms and a constant), best fits y (N',) in
     least squares. inputs: HUB_PRIMITIVES columns (N, 12) of the fit rows; weak: the weak form's test
@@ -291,13 +292,17 @@ def fit_hub_law(
     rotor's share its arm for "force" (1), "roll" (-r_iy) or "pitch" (r_ix), or given (4,): each rotor's
     share fixed, such as its far-field thrust's coefficient in the target (None: a law per rotor); a law
     shared by the arms starts where a free law ends (the arms at the CG are none), one with given shares
-    both there and at the CG, the lower residual kept (from_cg: at the CG only).
+    both there and at the CG, the lower residual kept (from_cg: at the CG only). basis: an orthonormal
+    basis of rest's columns when already made (the starts' fits share their caller's).
     None when no finite fit, or when a stage reaches a hub nearer the ground than min_height of the CG's
     height at some row (hubs_reach_ground) or an offset at the box bound (offsets_at_bound): the stage stops
     there and the later stages are not run."""
     inputs = np.asarray(inputs, float)
     y = np.asarray(y, float)
-    Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
+    if basis is not None:
+        Q = basis
+    else:
+        Q, _ = np.linalg.qr(np.asarray(rest, float)) if rest.size else (np.zeros((len(y), 0)), None)
     y_perp = y - Q @ (Q.T @ y)
     scale = float(np.sqrt(np.mean(y_perp**2))) or 1.0
 
@@ -374,18 +379,18 @@ def fit_hub_law(
         # residual kept. Either alone lost a case: from the free law's end seed 47's heavy-650-aero closed
         # loop had no fz law (the free law reached the ground rule), from the CG seed 47's sitl ground effect
         # ended with wy''s law in another basin (1.67 % off, against 0.02 %)
-        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, min_height=min_height)
+        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, min_height=min_height, basis=Q)
         fits = [fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, None, airspeed, arm, min_height,
-                            from_cg=True)]
+                            from_cg=True, basis=Q)]
         if free is not None:
             fits.append(fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, np.asarray(free.offsets),
-                                    airspeed, arm, min_height))
+                                    airspeed, arm, min_height, basis=Q))
         fitted = [f for f in fits if f is not None]
         return min(fitted, key=lambda f: float(np.sum(solve(np.ravel(f.offsets), bool(f.airspeed))[0] ** 2)),
                    default=None)
     if isinstance(arm, str) and start is None:
         # every hub at the CG has no moment arm: a law shared by the arms starts where the free law ends
-        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, min_height=min_height)
+        free = fit_hub_law(inputs, y, rest, powers, weak, max_evaluations, min_height=min_height, basis=Q)
         if free is None:
             return None
         start = np.asarray(free.offsets)

@@ -23,7 +23,7 @@ A walk only grows its structure, so the true term beside the pick's stand-ins fo
 vb ub^2 and vb wb^2, its expansion) passes the test but is not identified, and the rule declines it. So a
 passing structure the rule declines is reduced, general to specific: one term fewer at a time, each time the
 one whose removal fits least worse, while the test still passes and it fits at least as well as the start
-(reductions), and each reduction is offered to the rule in turn. Measured on seed 41's realistic aero (fy):
+(reduced), and each reduction is offered to the rule in turn. Measured on seed 41's realistic aero (fy):
 the pick's stand-ins gave way to vb |v| (p 0.49), 135 / 1 / 10 -> 136 / 0 / 7.
 """
 
@@ -195,15 +195,11 @@ def search(start: Sequence[sympy.Expr], screen: HausmanScreen, steps: int,
     return None, walk()
 
 
-def reductions(m: Sequence[int], screen: HausmanScreen, fit: float) -> list[list[int]]:
+def reduced(m: Sequence[int], screen: HausmanScreen, fit: float) -> Iterator[list[int]]:
     """From a structure the test passes (pool indices m), one term fewer at a time: each time the term whose
     removal leaves the least whitened residual, while the test still passes and the residual stays at most
-    fit (the search's start's); the structures in order, largest first (general to specific)."""
-    return list(reduced(m, screen, fit))
-
-
-def reduced(m: Sequence[int], screen: HausmanScreen, fit: float) -> Iterator[list[int]]:
-    """reductions' structures one at a time, each computed when the one before is declined."""
+    fit (the search's start's); the structures largest first (general to specific), each computed when the
+    one before is declined."""
     current = list(m)
     while len(current) > 1:
         best = None

@@ -209,7 +209,7 @@ def test_the_search_reduces_a_passing_structure_to_what_the_rule_takes():
     search takes the first the rule takes. Here the pick holds two stand-ins beside wz, so no single move
     reaches the true structure, and every structure on the way passes the test."""
     from identification.refit import pool_screen
-    from identification.specification_search import SearchSpace, reductions
+    from identification.specification_search import SearchSpace, reduced
 
     parts, whiteners = tied_flight(2)
     pool = [WZ, WZ**2, WZ**3, sympy.Integer(1), WZ * ROTOR_SUM]
@@ -230,11 +230,11 @@ def test_the_search_reduces_a_passing_structure_to_what_the_rule_takes():
     screen = pool_screen(pool, parts, whiteners)
     full = [0, 1, 2, 4]
     start_p, start_fit = screen.p_value([0, 1, 2])
-    steps = reductions(full, screen, start_fit)
+    steps = list(reduced(full, screen, start_fit))
     assert start_p < 0.01 and steps and [len(s) for s in steps] == list(range(3, 3 - len(steps), -1))
     for s in steps:
         p, rss = screen.p_value(s)
         assert p >= 0.01 and rss <= start_fit
     assert {pool[i] for i in steps[1]} == {WZ, WZ * ROTOR_SUM}
     # nothing fits as well as the start: no reduction
-    assert reductions(full, screen, 0.0) == []
+    assert list(reduced(full, screen, 0.0)) == []
