@@ -28,6 +28,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.linalg
 import sympy
 
 from identification.model_file import SYMBOLS, VARIABLE_NAMES, expression_to_string
@@ -345,12 +346,18 @@ def term_t_ratios(
     std = a.std(axis=0)
     measured = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
     if offset and measured.all() and len(y) > a.shape[1] + 1:
+        if noise is None and (fast := _centred_t_ratios(a, y, max_lag)) is not None:
+            return fast
         whole = noise if ok.all() else None  # the whitener holds exactly the rows it was given
         t, vif = term_t_ratios(np.hstack([np.ones((len(y), 1)), a]), y, max_lag, whole, offset=False)
         return (None, vif) if t is None else (t[1:], vif[1:])
     full_t, full_vif = np.full(a.shape[1], np.nan), np.full(a.shape[1], np.nan)
     if not measured.any():
         return full_t, full_vif
+    if noise is None and np.count_nonzero(~measured) == 1 and np.any(a[:, ~measured]):  # one offset
+        if (fast := _centred_t_ratios(a[:, measured], y, max_lag)) is not None:
+            full_t[measured], full_vif[measured] = fast
+            return full_t, full_vif
     scale = np.where(measured, std, np.maximum(np.abs(a).max(axis=0), 1e-300))
     z = a / scale  # unit spread (measured columns): least squares well scaled whatever the terms' units
     c = np.linalg.lstsq(z, y, rcond=None)[0]
@@ -374,6 +381,41 @@ def term_t_ratios(
         t = c / se
     full_t[measured] = np.nan_to_num(t, nan=0.0)
     return full_t, full_vif
+
+
+# the centred path answers up to this VIF; above it (nearly tied columns) the general path's pseudo-inverse
+# and its "inf" at 1e12 decide, as before
+_CENTRED_MAX_VIF = 1e10
+
+
+def _centred_t_ratios(x: np.ndarray, y: np.ndarray, max_lag: int | None
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+    """term_t_ratios of varying columns x (N,k) beside a constant offset, without stated noise: the columns
+    centred and scaled to unit spread, one QR factorisation of them beside the centred target gives the
+    coefficients, the residual and every VIF (N times the squared row norms of R^-1: the diagonal of the
+    inverse correlation matrix), where the general path solves least squares once and each column's
+    regression on the others once more (a 58-term model: 58 solves, 2.5x the time). The same least
+    squares; None (the general path) when a VIF exceeds _CENTRED_MAX_VIF or the rows are too few."""
+    if len(y) <= x.shape[1] + 1:
+        return None
+    z = (x - x.mean(axis=0)) / x.std(axis=0)
+    yc = y - y.mean()
+    k = z.shape[1]
+    r = np.linalg.qr(np.hstack([z, yc[:, None]]), mode="r")
+    with np.errstate(all="ignore"):
+        rinv = scipy.linalg.solve_triangular(r[:k, :k], np.eye(k), check_finite=False)
+        vif = len(y) * np.sum(rinv * rinv, axis=1)
+    if not np.all(np.isfinite(vif)) or vif.max() > _CENTRED_MAX_VIF:
+        return None
+    coef = rinv @ r[:k, k]
+    resid = yc - z @ coef
+    s = float(np.sqrt(np.mean(resid * resid)))
+    c, vif = np.abs(coef), np.maximum(vif, 1.0)
+    if s == 0.0:
+        return np.where(c > 0, np.inf, 0.0), vif
+    se = s * np.sqrt(vif) / np.sqrt(effective_rows(resid, max_lag))
+    with np.errstate(all="ignore"):
+        return np.nan_to_num(c / se, nan=0.0), vif
 
 
 def offset_t_ratio(

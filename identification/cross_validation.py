@@ -182,6 +182,10 @@ class FoldedRows:
         if not ok.any():
             return swaps, adds
         cols = idx[ok]
+        batch = self._pool.move_losses(base, cols, kind)
+        if batch is not None:
+            swaps[:, ok], adds[ok] = batch
+            return swaps, adds
         for row, kept in [(i, base[:i] + base[i + 1:]) for i in range(len(base))] + [(None, base)]:
             values = self._pool.added_losses(kept, cols, kind)
             if row is None:
@@ -198,6 +202,11 @@ class FoldedRows:
         """The cross-validated loss of an expression's terms (module docstring); inf when not finite."""
         shapes = term_shapes(expression)
         return self.terms_loss(shapes, kind) if shapes else loss_fn(self.y, np.zeros_like(self.y), kind)
+
+
+# move_losses' rank-one updates answer while base's largest VIF (on a fold's uncentred unit-RMS columns) is
+# below this; above it, added_losses solves each set's own equations
+_DOWNDATE_MAX_VIF = 1e8
 
 
 class _FoldEquations:
@@ -227,6 +236,65 @@ class _FoldEquations:
         for rows, a, coef in zip(self.held, self.held_a, _solve(grams, rhs), strict=True):
             out[rows] = np.ascontiguousarray(a[:, idx]) @ coef  # row-major as before: the same sums
         return out
+
+    def move_losses(self, base: Sequence[int], extra: np.ndarray, kind: str
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """added_losses for base less each of its columns in turn (swaps (k, P)) and for base itself (adds
+        (P,)), from one solve of base's normal equations per fold: dropping column i changes base's fits by
+        a rank-one term (coefficients b - h_i b_i / H_ii, H the inverse normal matrix, h_i its column i),
+        so each swap's prediction is base's plus that term, where added_losses solves anew and multiplies
+        the held rows by a (k, P) matrix for each of the k + 1 sets. The same least squares up to rounding;
+        None (added_losses set by set) when base's equations on a fold are singular or nearly so
+        (_DOWNDATE_MAX_VIF)."""
+        base = list(base)
+        k, count = len(base), len(extra)
+        if k == 0:
+            return None
+        both, sub = np.ix_(base, base), np.ix_(base, extra)
+        total = np.zeros((k + 1, count))  # row k: base itself (the additions)
+        usable = np.ones((k + 1, count), bool)
+        for d_gram, d_rhs, rows, a in zip(self.dropped_gram, self.dropped_rhs, self.held, self.held_a,
+                                          strict=True):
+            g = self.gram[both] - d_gram[both]
+            g_bx = self.gram[sub] - d_gram[sub]
+            try:
+                w = np.linalg.solve(g, np.column_stack([self.rhs[base] - d_rhs[base], g_bx, np.eye(k)]))
+            except np.linalg.LinAlgError:
+                return None
+            b0, v, h = w[:, 0], w[:, 1:1 + count], np.diag(w[:, 1 + count:])
+            if not np.all(h > 0) or float(np.max(h * np.diag(g))) > _DOWNDATE_MAX_VIF:
+                return None
+            g_xx = np.diag(self.gram)[extra] - np.diag(d_gram)[extra]
+            schur = g_xx - np.sum(g_bx * v, axis=0)
+            num = (self.rhs[extra] - d_rhs[extra]) - g_bx.T @ b0
+            a_b = a[:, base]
+            e = self.y[rows] - a_b @ b0  # base's errors on the held rows
+            q = a_b @ w[:, 1 + count:]
+            r = a[:, extra] - a_b @ v  # each extra column less its fit by base's columns
+            floor = 1e-9 * np.maximum(g_xx, 1e-300)
+            fit = np.empty_like(r)  # each set's fitted part of the errors, in place (no temporaries)
+            for i in range(k + 1):
+                if i == k:
+                    s, top, err_base, c = schur, num, e, None
+                else:
+                    c = v[i] / h[i]
+                    s, top, err_base = schur + v[i] * c, num + b0[i] * c, e + q[:, i] * (b0[i] / h[i])
+                usable[i] &= s > floor
+                beta = top / np.where(s > 0, s, 1.0)
+                np.multiply(r, beta, out=fit)
+                if c is not None:  # the rank-one part: fit += q_i (c beta)^T
+                    fit += q[:, i, None] * (c * beta)
+                np.subtract(err_base[:, None], fit, out=fit)
+                if kind == "absolute":
+                    np.abs(fit, out=fit)
+                else:
+                    np.multiply(fit, fit, out=fit)
+                total[i] += fit.sum(axis=0)
+        with np.errstate(all="ignore"):
+            value = total / len(self.a) if kind == "absolute" else np.sqrt(total / len(self.a))
+        value = np.where(np.isfinite(value), value, np.inf)
+        value[~usable] = np.nan
+        return value[:k], value[k]
 
     def added_losses(self, kept: Sequence[int], extra: np.ndarray, kind: str,
                      chunk: int = 64) -> np.ndarray:

@@ -273,6 +273,27 @@ def test_the_one_term_moves_scored_at_once_are_the_moves_scored_one_by_one(kind)
     assert FoldedRows(rows.parts, 5).move_losses(current, others, kind) is None  # not prepared
 
 
+@pytest.mark.parametrize("tie", [0.0, 1e-3, 1e-5])
+def test_the_moves_of_a_model_with_nearly_tied_terms_are_scored_as_one_by_one(tie):
+    """The moves' losses come from rank-one changes of the model's fit per fold, which lose digits when its
+    own terms are nearly tied (wy beside wy + 1e-5 wx^2: 1e-4 of the loss); there too (and with no tie) each
+    move's loss is the one terms_loss gives it."""
+    X = _rows(1000, 12)
+    wy_twin = S["wy"] + tie * S["wx"] ** 2 if tie else S["wy"] * S["u1"]
+    current = [sympy.Integer(1), S["u1"] * S["wz"], S["wy"], wy_twin]
+    y = expression_columns(current[:3], X) @ np.array([0.3, 2e-3, 0.2])
+    y = y + 0.05 * np.random.default_rng(12).standard_normal(len(y))
+    others = [S["u2"], S["ub"] * S["wz"], S["wx"] * S["wz"]]
+    rows = FoldedRows([(X[:700], y[:700], None, 5), (X[700:], y[700:], None, 5)], 5)
+    rows.prepare([*current, *others])
+    swaps, adds = rows.move_losses(current, others, "absolute")
+    for p, other in enumerate(others):
+        assert adds[p] == pytest.approx(rows.terms_loss([*current, other], "absolute"), rel=1e-7)
+        for i in range(len(current)):
+            model = current[:i] + [other] + current[i + 1:]
+            assert swaps[i, p] == pytest.approx(rows.terms_loss(model, "absolute"), rel=1e-7)
+
+
 def test_a_model_holding_a_term_of_no_pool_is_still_scored_at_once():
     """The polish's rotor patterns bring in terms the pool was not prepared with; a model holding one was
     scored move by move (thousands of refits: 114 of 170 s on one target of a closed-loop flight), so the

@@ -7,7 +7,13 @@ import pytest
 import sympy
 
 from identification.candidate import Candidate
-from identification.collinearity import offset_t_ratio, term_identification, term_t_ratios, weakest_t
+from identification.collinearity import (
+    effective_rows,
+    offset_t_ratio,
+    term_identification,
+    term_t_ratios,
+    weakest_t,
+)
 from identification.engine_settings import SelectionSettings
 from identification.pareto import select, terms_identified
 from identification.weak_noise import Whitener
@@ -183,3 +189,29 @@ def test_offset_t_ratio_measures_a_constant_beside_the_terms():
     y2 = 0.1 + 2.0 * near_constant + rng.standard_normal(n)
     assert offset_t_ratio(near_constant[:, None], y2) < SelectionSettings().min_t  # se ~50: chance level
     assert offset_t_ratio(x[:, None], 0.1 + 2.0 * x) > 1e9  # exact but for rounding
+
+
+def test_term_t_ratios_are_the_textbook_ones_on_correlated_columns():
+    """The t ratios and VIFs of correlated columns beside an offset are |c_j| / (s sqrt(VIF_j) / sqrt(N_eff))
+    with VIF_j the diagonal of the inverse correlation matrix, whichever way term_t_ratios computes them
+    (one QR factorisation, or a regression per column for nearly tied ones), and a column tied exactly to the
+    others has an infinite VIF and t 0."""
+    rng = np.random.default_rng(11)
+    n = 3000
+    base = rng.standard_normal((n, 4))
+    cols = base @ np.array([[1.0, 0.9, 0.0, 0.2], [0.0, 0.4, 0.3, 0.0], [0.0, 0.0, 1.0, 0.9],
+                            [0.0, 0.0, 0.0, 0.3]]) + np.array([5.0, -2.0, 0.0, 1.0])
+    y = cols @ np.array([0.5, -1.0, 2e-3, 0.7]) + 1.5 + 0.05 * rng.standard_normal(n)
+    t, vif = term_t_ratios(cols, y)
+    z = (cols - cols.mean(axis=0)) / cols.std(axis=0)
+    expected_vif = np.diag(np.linalg.inv(z.T @ z / n))
+    coef, *_ = np.linalg.lstsq(np.column_stack([np.ones(n), z]), y, rcond=None)
+    resid = y - np.column_stack([np.ones(n), z]) @ coef
+    s = np.sqrt(np.mean(resid**2))
+    expected_t = np.abs(coef[1:]) / (s * np.sqrt(expected_vif) / np.sqrt(effective_rows(resid)))
+    assert vif == pytest.approx(expected_vif, rel=1e-9)
+    assert t == pytest.approx(expected_t, rel=1e-9)
+    assert t[2] < 5 < t.min(initial=np.inf, where=np.arange(4) != 2)
+    tied = np.column_stack([cols, cols[:, 0] - 2.0 * cols[:, 2]])
+    t_tied, vif_tied = term_t_ratios(tied, y)
+    assert np.isinf(vif_tied).any() and np.min(t_tied) == 0.0

@@ -84,17 +84,27 @@ def companion_killed_on_failure(proc: subprocess.Popen, head: str):
         raise AssertionError(f"{exc}\nquadsr fly said:\n{head}{proc.communicate()[0]}") from None
 
 
-def test_case2_through_px4_offboard(px4_rt, tmp_path):
+@pytest.fixture(scope="module")
+def case2_flight(px4_rt, tmp_path_factory):
+    """Case II flown once through PX4 OFFBOARD: (the companion's exit code, its output, its --out folder).
+    A fixture, so that the ULog test has its flight whichever tests are selected."""
     run, gcs, work, model, port = px4_rt
-    proc = fly(work, model, port, tmp_path / "case2")
+    out = tmp_path_factory.mktemp("case2") / "case2"
+    proc = fly(work, model, port, out)
     output, _ = proc.communicate(timeout=120)
-    assert proc.returncode == 0, output
-    assert_case2_tracked(tmp_path / "case2", settle_s=8.0, tolerance_m=0.10)
+    return proc.returncode, output, out
+
+
+def test_case2_through_px4_offboard(case2_flight):
+    returncode, output, out = case2_flight
+    assert returncode == 0, output
+    assert_case2_tracked(out, settle_s=8.0, tolerance_m=0.10)
     assert "(truth)" in output
 
 
-def test_px4_ulog_of_the_flight_is_read_by_quadsr_identify(px4_rt, tmp_path):
+def test_px4_ulog_of_the_flight_is_read_by_quadsr_identify(px4_rt, case2_flight, tmp_path):
     run, gcs, work, model, port = px4_rt
+    assert case2_flight[0] == 0, case2_flight[1]
     ulogs = sorted((work / "rootfs" / "log").rglob("*.ulg"))
     assert ulogs, "PX4 wrote no ULog"
     done = subprocess.run([sys.executable, "-m", "quadsr.cli", "identify", str(ulogs[-1]), "-o",
