@@ -273,6 +273,17 @@ def test_the_one_term_moves_scored_at_once_are_the_moves_scored_one_by_one(kind)
     assert FoldedRows(rows.parts, 5).move_losses(current, others, kind) is None  # not prepared
 
 
+def _assert_moves_scored_one_by_one(rows: FoldedRows, current: list, others: list, kind: str,
+                                    rel: float) -> None:
+    """Every swap and addition move_losses scores has the loss terms_loss gives its model."""
+    swaps, adds = rows.move_losses(current, others, kind)
+    for p, other in enumerate(others):
+        assert adds[p] == pytest.approx(rows.terms_loss([*current, other], kind), rel=rel)
+        for i in range(len(current)):
+            model = current[:i] + [other] + current[i + 1:]
+            assert swaps[i, p] == pytest.approx(rows.terms_loss(model, kind), rel=rel)
+
+
 @pytest.mark.parametrize("tie", [0.0, 1e-3, 1e-5])
 def test_the_moves_of_a_model_with_nearly_tied_terms_are_scored_as_one_by_one(tie):
     """The moves' losses come from rank-one changes of the model's fit per fold, which lose digits when its
@@ -286,12 +297,7 @@ def test_the_moves_of_a_model_with_nearly_tied_terms_are_scored_as_one_by_one(ti
     others = [S["u2"], S["ub"] * S["wz"], S["wx"] * S["wz"]]
     rows = FoldedRows([(X[:700], y[:700], None, 5), (X[700:], y[700:], None, 5)], 5)
     rows.prepare([*current, *others])
-    swaps, adds = rows.move_losses(current, others, "absolute")
-    for p, other in enumerate(others):
-        assert adds[p] == pytest.approx(rows.terms_loss([*current, other], "absolute"), rel=1e-7)
-        for i in range(len(current)):
-            model = current[:i] + [other] + current[i + 1:]
-            assert swaps[i, p] == pytest.approx(rows.terms_loss(model, "absolute"), rel=1e-7)
+    _assert_moves_scored_one_by_one(rows, current, others, "absolute", rel=1e-7)
 
 
 def test_a_model_holding_a_term_of_no_pool_is_still_scored_at_once():
@@ -309,12 +315,7 @@ def test_a_model_holding_a_term_of_no_pool_is_still_scored_at_once():
     others = [S["wy"], S["u2"], S["wx"] ** 2]
     assert rows.move_losses(current, others, "squared") is None  # the model's term was not prepared
     rows.include(current)
-    swaps, adds = rows.move_losses(current, others, "squared")
-    for p, other in enumerate(others):
-        assert adds[p] == pytest.approx(rows.terms_loss([*current, other], "squared"), rel=1e-9)
-        for i in range(len(current)):
-            model = current[:i] + [other] + current[i + 1:]
-            assert swaps[i, p] == pytest.approx(rows.terms_loss(model, "squared"), rel=1e-9)
+    _assert_moves_scored_one_by_one(rows, current, others, "squared", rel=1e-9)
     # the terms prepared before keep their columns' values: the same losses as before include
     assert rows.terms_loss(pool[:3], "squared") == pytest.approx(
         FoldedRows(rows.parts, 5).terms_loss(pool[:3], "squared"), rel=1e-12)
