@@ -290,6 +290,12 @@ class SelectionSettings:
     # the polish stops when its pick stays and no such model is left to move on from, or after this many
     # rounds (4 before session 51, when each round moved from the pick alone)
     cv_polish_rounds: int = 8
+    # where the polished pick holds a hub law (a ground effect), its own coefficients are refit beside the
+    # pick's other terms (identification.law_refit) and the polish moves on from there, at most this many
+    # times, until the pick stays: the law was fitted beside the terms of an earlier model, and its stale
+    # residual hid small terms the flight pins down (seed 41's heavy closed loop: wx^2 in wx' at t 6 -> 13).
+    # 0: off (before session 65)
+    cv_polish_law_refits: int = 2
     # the chosen structure's refit (on the fit and pick rows) by generalised least squares where the rows
     # are weak and the log states its targets' raw noise (identification.weak_noise): the weak rows' noise
     # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate
@@ -353,6 +359,9 @@ def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
     if settings.selection.cv_polish_rounds < 0:
         raise UserError(f"{where}: key 'selection.cv_polish_rounds': must be 0 or more",
                         hint="the most rounds of moves the polish makes, e.g. 8")
+    if settings.selection.cv_polish_law_refits < 0:
+        raise UserError(f"{where}: key 'selection.cv_polish_law_refits': must be 0 or more",
+                        hint="the most times the pick's ground-effect law is refit and polished from, e.g. 2")
     if settings.selection.cv_polish_beam < 0:
         raise UserError(f"{where}: key 'selection.cv_polish_beam': must be 0 or more",
                         hint="the models beside the pick the polish moves on from per round, e.g. 2")

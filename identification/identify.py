@@ -59,6 +59,7 @@ from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
 from identification.engine_settings import SelectionSettings
 from identification.equation_form import equation_text
 from identification.height_law import body_values
+from identification.law_refit import refit_law
 from identification.library import build_library, feature_matrix
 from identification.log_gravity import gravity_note
 from identification.metrics import LOSSES, table_metrics, weak_metrics
@@ -84,6 +85,22 @@ R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 # worker: closed-loop fang-chen-aero's targets took 12-66 s in one run, dwx then dwy 119 s of wall against
 # 109 s for dwy then the three short ones (the other worker: fz then dwx)
 LONGEST_FIRST = ("dwy", "fz", "az", "dwx")
+
+
+def _polish_extra(eng: Any, current: list[sympy.Expr], folded: FoldedRows, selection: SelectionSettings,
+                  before: list[sympy.Expr]) -> list[sympy.Expr]:
+    """The terms the polish from the model `current` may use beside every candidate's (cv_polish: the
+    engine's shape twins of its terms, the features most correlated with its cross-validated residual, its
+    height terms times the rotors' thrust), after those of an earlier polish (`before`)."""
+    twins = selection.cv_polish_twins
+    extra = eng.nearest_features(current, twins) if twins > 0 and hasattr(eng, "nearest_features") else []
+    if selection.cv_polish_residual > 0 and hasattr(eng, "residual_features"):
+        extra += eng.residual_features([(part[0], part[2]) for part in folded.parts],
+                                       folded.y - folded.predictions(current),
+                                       selection.cv_polish_residual, [*current, *extra])
+    if selection.cv_polish_thrust_twins:
+        extra += [t for t in thrust_twins(current) if t not in extra]
+    return [*before, *(t for t in extra if t not in before)]
 
 
 def body_collinearity(expr: sympy.Expr, X: np.ndarray,
@@ -311,21 +328,27 @@ def identify(
         pick_y = yp[okp] if ops["pick"] is None else ops["pick"] @ yp[okp]
         scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
         chosen = select(candidates, settings.selection, scale=scale, by_degree=True)
+        extra: list[sympy.Expr] = []
         if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
-            twins, current = settings.selection.cv_polish_twins, term_shapes(chosen.expression)
-            extra = eng.nearest_features(current, twins) if twins > 0 and hasattr(eng, "nearest_features") \
-                else []
-            if settings.selection.cv_polish_residual > 0 and hasattr(eng, "residual_features"):
-                extra += eng.residual_features([(part[0], part[2]) for part in folded.parts],
-                                               folded.y - folded.predictions(current),
-                                               settings.selection.cv_polish_residual, [*current, *extra])
-            if settings.selection.cv_polish_thrust_twins:
-                extra += [t for t in thrust_twins(current) if t not in extra]
-            chosen = polish_by_cross_validation(chosen, candidates, folded, loss, settings.selection,
-                                                functools.partial(mark_self_feedback, X=X[ok], y=y[ok],
-                                                                  target=name), extra=extra,
-                                                rounds=settings.selection.cv_polish_rounds,
-                                                beam=settings.selection.cv_polish_beam)
+            mark = functools.partial(mark_self_feedback, X=X[ok], y=y[ok], target=name)
+            start_from, sel = chosen, settings.selection
+            for refits in range(sel.cv_polish_law_refits + 1):
+                extra = _polish_extra(eng, term_shapes(start_from.expression), folded, sel, extra)
+                picked = polish_by_cross_validation(start_from, candidates, folded, loss, sel, mark,
+                                                    extra=extra, rounds=sel.cv_polish_rounds,
+                                                    beam=sel.cv_polish_beam)
+                # the pick holding a ground-effect law: the law refit beside its terms, polished from there
+                moved = set(term_shapes(picked.expression)) != set(term_shapes(chosen.expression))
+                chosen = picked
+                if refits == sel.cv_polish_law_refits or (refits and not moved):
+                    break
+                shapes = refit_law(term_shapes(chosen.expression), folded)
+                start_from = None if shapes is None else move_candidate(
+                    shapes, folded.terms_loss(shapes, loss), folded, loss, "law-refit")
+                if start_from is None:
+                    break
+                mark([start_from])
+                candidates.append(start_from)
         parts = [(X[ok], y[ok], ops["train"]), (Xp[okp], yp[okp], ops["pick"])]
         whiteners, spec = None, None
         if settings.selection.refit_gls and weak is not None:
