@@ -61,7 +61,7 @@ def test_the_polish_reaches_the_true_structure_through_models_its_rule_rejects(s
 
 
 def test_a_negative_beam_or_round_count_is_a_clear_error(tmp_path):
-    for key in ("cv_polish_beam", "cv_polish_rounds"):
+    for key in ("cv_polish_beam", "cv_polish_rounds", "cv_polish_law_refits"):
         path = tmp_path / f"{key}.yaml"
         path.write_text(f"selection:\n  {key}: -1\n")
         with pytest.raises(UserError, match=f"selection.{key}"):

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import sympy
 
 from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
 from identification.cross_validation import FoldedRows
+from identification.engine import EngineSettings
+from identification.engine_settings import load_engine_settings
 from identification.hub_law import HubLaw
 from identification.law_refit import is_hub_law, refit_law
 from identification.true_model import random_states
@@ -56,3 +60,9 @@ def test_only_a_hub_law_is_refit(term):
     X = _rows(500, 22)
     rows = FoldedRows([(X[:400], X[:400, 9], None, 5), (X[400:], X[400:, 9], None, 5)], 5)
     assert refit_law([S["wx"], term], rows) is None
+
+
+def test_the_settings_file_without_the_law_refit_loads():
+    path = Path(__file__).resolve().parent.parent / "bench" / "settings" / "no-law-refit.yaml"
+    assert load_engine_settings(path).selection.cv_polish_law_refits == 0
+    assert EngineSettings().selection.cv_polish_law_refits == 2
