@@ -337,11 +337,11 @@ def identify(
                 picked = polish_by_cross_validation(start_from, candidates, folded, loss, sel, mark,
                                                     extra=extra, rounds=sel.cv_polish_rounds,
                                                     beam=sel.cv_polish_beam)
-                # the pick holding a ground-effect law: the law refit beside its terms, polished from there
                 moved = set(term_shapes(picked.expression)) != set(term_shapes(chosen.expression))
                 chosen = picked
                 if refits == sel.cv_polish_law_refits or (refits and not moved):
-                    break
+                    break  # the refits done, or the last one's polish left the pick's terms as they were
+                # the pick holding a ground-effect law: the law refit beside its terms, polished from there
                 shapes = refit_law(term_shapes(chosen.expression), folded)
                 start_from = None if shapes is None else move_candidate(
                     shapes, folded.terms_loss(shapes, loss), folded, loss, "law-refit")
