@@ -251,22 +251,25 @@ class _FoldEquations:
         if k == 0:
             return None
         both, sub = np.ix_(base, base), np.ix_(base, extra)
+        # the whole rows' parts, the same for every fold (each fold's dropped rows are taken from them)
+        gram_bb, gram_bx, diag_x = self.gram[both], self.gram[sub], np.diag(self.gram)[extra]
+        rhs_b, rhs_x = self.rhs[base], self.rhs[extra]
         total = np.zeros((k + 1, count))  # row k: base itself (the additions)
         usable = np.ones((k + 1, count), bool)
         for d_gram, d_rhs, rows, a in zip(self.dropped_gram, self.dropped_rhs, self.held, self.held_a,
                                           strict=True):
-            g = self.gram[both] - d_gram[both]
-            g_bx = self.gram[sub] - d_gram[sub]
+            g = gram_bb - d_gram[both]
+            g_bx = gram_bx - d_gram[sub]
             try:
-                w = np.linalg.solve(g, np.column_stack([self.rhs[base] - d_rhs[base], g_bx, np.eye(k)]))
+                w = np.linalg.solve(g, np.column_stack([rhs_b - d_rhs[base], g_bx, np.eye(k)]))
             except np.linalg.LinAlgError:
                 return None
             b0, v, h = w[:, 0], w[:, 1:1 + count], np.diag(w[:, 1 + count:])
             if not np.all(h > 0) or float(np.max(h * np.diag(g))) > _DOWNDATE_MAX_VIF:
                 return None
-            g_xx = np.diag(self.gram)[extra] - np.diag(d_gram)[extra]
+            g_xx = diag_x - np.diag(d_gram)[extra]
             schur = g_xx - np.sum(g_bx * v, axis=0)
-            num = (self.rhs[extra] - d_rhs[extra]) - g_bx.T @ b0
+            num = (rhs_x - d_rhs[extra]) - g_bx.T @ b0
             a_b = a[:, base]
             e = self.y[rows] - a_b @ b0  # base's errors on the held rows
             q = a_b @ w[:, 1 + count:]

@@ -21,6 +21,7 @@ import sympy
 
 from identification.body_frame import PRIMITIVE_SYMBOLS
 from identification.cross_validation import FoldedRows
+from identification.weak_noise import column_scale
 
 
 def is_hub_law(shape: sympy.Expr) -> bool:
@@ -45,8 +46,7 @@ def refit_law(shapes: Sequence[sympy.Expr], rows: FoldedRows) -> list[sympy.Expr
     a, y, _ = rows.fit_part([*others, *parts])
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(y))) or len(y) <= a.shape[1]:
         return None
-    scale = np.sqrt(np.mean(a * a, axis=0))
-    scale[scale == 0] = 1.0
+    scale = column_scale(a)
     coef = np.linalg.lstsq(a / scale, y, rcond=None)[0] / scale
     multipliers = coef[len(others):]
     if not np.all(np.isfinite(multipliers)) or np.allclose(multipliers, multipliers.mean(), rtol=1e-9):
