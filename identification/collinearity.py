@@ -497,10 +497,18 @@ def term_shapes(expr: sympy.Expr) -> list[sympy.Expr]:
     return list(_term_shapes(expr))
 
 
-@functools.lru_cache(maxsize=4096)
+def forget_term_shapes() -> None:
+    """Empty term_shapes' cache (identify does at each target: its candidates are not asked for again)."""
+    _term_shapes.cache_clear()
+
+
+@functools.cache
 def _term_shapes(expr: sympy.Expr) -> tuple[sympy.Expr, ...]:
     # cached: the selection asks for the same candidates' shapes thousands of times, and rebuilding the sum
-    # makes sympy deduce its assumptions anew each time (5 % of a closed-loop target's fit). A sum that is
+    # makes sympy deduce its assumptions anew each time (5 % of a closed-loop target's fit). Unbounded, and
+    # emptied per target (forget_term_shapes): each polish reads every candidate's shapes, some 8,600 on
+    # closed-loop heavy-650-aero's wx', and a cache of 4,096 read in that order never hit (12 of its 128 s)
+    # A sum that is
     # already flat (no nested sum, one term per shape, in sympy's order) would be rebuilt as itself: read it
     # as it is (most candidates are; 2-3 % of a closed-loop fit's CPU)
     args = sympy.Add.make_args(expr)

@@ -47,6 +47,7 @@ from identification.collinearity import (
     Collinearity,
     column_collinearity,
     describe,
+    forget_term_shapes,
     model_collinearity,
     term_shapes,
     terms_collinearity,
@@ -266,6 +267,7 @@ def identify(
 
     def fit_target(name: str) -> dict[str, Any]:
         """One target fitted, picked, polished, refit and checked (in a worker process when processes > 1)."""
+        forget_term_shapes()  # the last target's candidates' shapes
         j = (BODY_TARGET_NAMES if body_frame else TARGET_NAMES).index(name)
         y, yp, yv = Yf[:, j], Ypf[:, j], Yvf[:, j]
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
@@ -331,12 +333,16 @@ def identify(
         extra: list[sympy.Expr] = []
         if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
             mark = functools.partial(mark_self_feedback, X=X[ok], y=y[ok], target=name)
+            # the specification pick below chooses among every candidate within the tolerance, not only the
+            # simplest: the polish keeps every move within it then
+            spec_pick = bool(settings.selection.specification_pick and settings.selection.refit_gls
+                             and weak is not None)
             start_from, sel = chosen, settings.selection
             for refits in range(sel.cv_polish_law_refits + 1):
                 extra = _polish_extra(eng, term_shapes(start_from.expression), folded, sel, extra)
                 picked = polish_by_cross_validation(start_from, candidates, folded, loss, sel, mark,
                                                     extra=extra, rounds=sel.cv_polish_rounds,
-                                                    beam=sel.cv_polish_beam)
+                                                    beam=sel.cv_polish_beam, all_tolerated=spec_pick)
                 moved = set(term_shapes(picked.expression)) != set(term_shapes(chosen.expression))
                 chosen = picked
                 if refits == sel.cv_polish_law_refits or (refits and not moved):
