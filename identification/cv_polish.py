@@ -183,9 +183,8 @@ def _pickable_moves(eligible: list[tuple[float, list[sympy.Expr]]], candidates: 
     `current`; None: such moves are fitted too) and no better: the pick passes the rule, and is within the
     tolerance wherever such a move is, ahead of it, so the pick or a candidate before it is chosen (seed 41's
     heavy closed loop's wx': 7,616 -> 5,928 moves fitted, the same model, 117 -> 110 s). A move holding a
-    term of no candidate (a
-    rotor-power twin, a
-    rotor pattern) is fitted as before: the specification search draws its terms from the candidates."""
+    term of no candidate (a rotor-power twin, a rotor pattern) is fitted as before: the specification search
+    draws its terms from the candidates."""
     z = selection.cv_polish_z
     best = pick_best(candidates, selection)
     cutoff = within_tolerance(best, selection, folded.scale)
