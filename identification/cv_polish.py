@@ -192,8 +192,8 @@ def _pickable_moves(eligible: list[tuple[float, list[sympy.Expr]]], candidates: 
     tail: int | None = None  # from here on the moves are not marked yet: the best the rule passes is final
     for at in sorted(range(len(eligible)), key=lambda k: eligible[k][0]):
         value, shapes = eligible[at]
-        if all(t in pool for t in shapes) and (  # no term of no candidate
-                value > cutoff or (size is not None and value >= current and model_size(shapes) > size)):
+        if (value > cutoff or (size is not None and value >= current and model_size(shapes) > size)) \
+                and all(t in pool for t in shapes):  # no term of no candidate
             continue
         if _worse(folded, shapes, base, value, current, kind, z):
             continue

@@ -331,12 +331,12 @@ def identify(
         scale = folded.scale if folded is not None else float(np.std(pick_y)) if okp.any() else 1.0
         chosen = select(candidates, settings.selection, scale=scale, by_degree=True)
         extra: list[sympy.Expr] = []
+        # the specification pick (below: weak rows, their noise covariance weighing the refit) chooses among
+        # every candidate within the tolerance, not only the simplest: the polish keeps every move within it
+        spec_pick = bool(settings.selection.specification_pick and settings.selection.refit_gls
+                         and weak is not None)
         if folded is not None:  # one-term moves from the pick over every candidate's terms, scored alike
             mark = functools.partial(mark_self_feedback, X=X[ok], y=y[ok], target=name)
-            # the specification pick below chooses among every candidate within the tolerance, not only the
-            # simplest: the polish keeps every move within it then
-            spec_pick = bool(settings.selection.specification_pick and settings.selection.refit_gls
-                             and weak is not None)
             start_from, sel = chosen, settings.selection
             for refits in range(sel.cv_polish_law_refits + 1):
                 extra = _polish_extra(eng, term_shapes(start_from.expression), folded, sel, extra)
@@ -360,7 +360,7 @@ def identify(
         if settings.selection.refit_gls and weak is not None:
             whiteners = [stated_whitener(part, mask, ops[key], j)
                          for part, mask, key in ((roles.fit, ok, "train"), (roles.pick, okp, "pick"))]
-        if settings.selection.specification_pick and whiteners is not None:
+        if spec_pick:  # whiteners were made (refit_gls, weak rows)
             test = functools.partial(structure_test, parts=parts, whiteners=whiteners)
             space = None if folded is None else _search_space(candidates, extra, parts, whiteners, folded,
                                                                loss, settings.selection, X[ok], y[ok], name)
