@@ -142,13 +142,22 @@ class FoldedRows:
         if not cols or not len(self.y):
             return
         self._index = {k: i for i, k in enumerate(keys)}
-        self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped, self.held)
+        self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped, self.held, self._first)
 
     def include(self, shapes: Sequence[sympy.Expr]) -> None:
         """Prepare these terms too, beside those prepared (nothing when all are): a polish move can bring in a
         term of no pool (a rotor pattern), and a model holding one would be scored move by move."""
         if self._pool is not None and any(s not in self._offered for s in shapes):
             self.prepare([*self._index, *shapes])
+
+    def fit_coefficients(self, shapes: Sequence[sympy.Expr]) -> np.ndarray | None:
+        """The terms' least-squares coefficients on the fit rows (the target's unit per each term's), from
+        the prepared normal equations; None when a term is not prepared or the equations are (nearly)
+        singular (the caller solves by least squares)."""
+        idx = [self._index.get(s) for s in shapes]
+        if self._pool is None or not shapes or any(i is None for i in idx):
+            return None
+        return self._pool.fit_coefficients(idx)
 
     def predictions(self, shapes: Sequence[sympy.Expr]) -> np.ndarray:
         """Each row's prediction by the terms refit (least squares) without the row's fold; NaN when a
@@ -210,16 +219,20 @@ _DOWNDATE_MAX_VIF = 1e8
 
 
 class _FoldEquations:
-    """The normal equations of columns a (M,m), scaled to unit RMS, over all rows and over each fold's
-    dropped rows: a model of any subset of the columns is refit per fold from their submatrices."""
+    """The normal equations of columns a (M,m), scaled to unit RMS, over all rows, over each fold's
+    dropped rows and over the first `first` rows (the fit rows): a model of any subset of the columns is
+    refit per fold, or on the fit rows, from their submatrices."""
 
     def __init__(self, a: np.ndarray, y: np.ndarray, dropped: Sequence[np.ndarray],
-                 held: Sequence[np.ndarray]):
+                 held: Sequence[np.ndarray], first: int = 0):
         size = np.sqrt(np.mean(a * a, axis=0))
         size[size == 0] = 1.0
+        self.size = size
         self.a = a / size
         self.y = y
         self.gram, self.rhs = self.a.T @ self.a, self.a.T @ y
+        fit = self.a[:first]
+        self.fit_gram, self.fit_rhs = fit.T @ fit, fit.T @ y[:first]
         self.dropped_gram = [self.a[d].T @ self.a[d] for d in dropped]
         self.dropped_rhs = [self.a[d].T @ y[d] for d in dropped]
         # each fold's held-out rows column-major: a model's columns are then contiguous copies (a gather
@@ -236,6 +249,20 @@ class _FoldEquations:
         for rows, a, coef in zip(self.held, self.held_a, _solve(grams, rhs), strict=True):
             out[rows] = np.ascontiguousarray(a[:, idx]) @ coef  # row-major as before: the same sums
         return out
+
+    def fit_coefficients(self, idx: Sequence[int]) -> np.ndarray | None:
+        """Columns idx's least-squares coefficients on the fit rows (per unscaled column); None when their
+        equations there are singular or their largest VIF is above _DOWNDATE_MAX_VIF."""
+        idx = list(idx)
+        g = self.fit_gram[np.ix_(idx, idx)]
+        try:
+            w = np.linalg.solve(g, np.column_stack([self.fit_rhs[idx], np.eye(len(idx))]))
+        except np.linalg.LinAlgError:
+            return None
+        vif = np.diag(w[:, 1:]) * np.diag(g)
+        if not np.all(vif > 0) or float(np.max(vif)) > _DOWNDATE_MAX_VIF:
+            return None
+        return w[:, 0] / self.size[idx]
 
     def move_losses(self, base: Sequence[int], extra: np.ndarray, kind: str
                     ) -> tuple[np.ndarray, np.ndarray] | None:

@@ -443,7 +443,11 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     ratios and VIF measured when the pick asks (FoldedRows.identification: on the fit and pick rows, or
     the fit rows alone); None when its expression does not read back as its terms."""
     a, y, _lag = folded.fit_part(shapes)
-    coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    # from the prepared normal equations: a 58-term move on 11,850 rows 0.06 ms against lstsq's 10.7 ms (one
+    # thread); seed 41's heavy closed loop's wx' solves 5,800 moves
+    coef = folded.fit_coefficients(shapes)
+    if coef is None:
+        coef = np.linalg.lstsq(a, y, rcond=None)[0]
     c = terms_candidate(shapes, coef, engine, ordered=True)  # read back without rebuilding the sum
     back = term_shapes(c.expression)
     if _key(back) != _key(shapes) or len(back) != len(shapes):

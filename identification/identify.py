@@ -79,13 +79,14 @@ DEFAULT_BUDGET = 60  # genetic-programming generations per target
 R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 # started first when targets are fitted side by side, the longest first: the thrust and roll/pitch moment
 # targets hold the rotors' terms and, near the ground, the hub law (its variable projection and the rounds
-# after it), and take two to four times the others' time (closed-loop fang-chen-aero: 53-66 s against
-# 12-17 s per target). On two cores the third of them starts when one of the first two ends, so the
-# longest of the three goes first: the pitch moment was the longest target in each of the four benchmark
-# cases whose longest target took over 40 s (seed 19, session 46), and started third it ran after dwx on one
-# worker: closed-loop fang-chen-aero's targets took 12-66 s in one run, dwx then dwy 119 s of wall against
-# 109 s for dwy then the three short ones (the other worker: fz then dwx)
-LONGEST_FIRST = ("dwy", "fz", "az", "dwx")
+# after it), and take two to four times the others' time (closed-loop fang-chen-aero: 26-36 s against 5-9 s
+# per target). On two cores the third of them starts when one of the first two ends, so the two moments go
+# first and the thrust third: the moments are the longest targets more often and by more (the heavy
+# closed loop's wx' and wy' 84 and 74 s against fz's 39 s, where fz then wx' on one worker took 123 s of
+# wall and wy' then fz 112 s; closed-loop fang-chen-aero, where fz is longest, 56.6 -> 61.4 s); over the
+# 28 case runs of seed 41 (session 67's code) the two workers' simulated wall summed 764 -> 757 s, and over
+# the 39 of session 65 1643 -> 1619 s
+LONGEST_FIRST = ("dwy", "dwx", "fz", "az")
 
 
 def _polish_extra(eng: Any, current: list[sympy.Expr], folded: FoldedRows, selection: SelectionSettings,

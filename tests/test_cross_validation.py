@@ -319,3 +319,23 @@ def test_a_model_holding_a_term_of_no_pool_is_still_scored_at_once():
     # the terms prepared before keep their columns' values: the same losses as before include
     assert rows.terms_loss(pool[:3], "squared") == pytest.approx(
         FoldedRows(rows.parts, 5).terms_loss(pool[:3], "squared"), rel=1e-12)
+
+
+def test_a_moves_fit_from_the_prepared_equations_is_least_squares_on_the_fit_rows():
+    """fit_coefficients (the polish's move fits) gives the least-squares coefficients on the fit rows alone,
+    per term in the term's own unit (terms 1e6 apart in size), and leaves to lstsq what it cannot answer:
+    a term not prepared, and two terms equal on the fit rows."""
+    X = _rows(1000, 14)
+    shapes = [sympy.Integer(1), S["u1"] ** 2, S["u1"] * S["wz"], S["vb"] * S["wx"]]
+    y = expression_columns(shapes, X) @ np.array([0.3, 2e-6, 2e-3, -0.7])
+    y = y + 0.05 * np.random.default_rng(15).standard_normal(len(y))
+    rows = FoldedRows([(X[:700], y[:700], None, 5), (X[700:], y[700:], None, 5)], 5)
+    assert rows.fit_coefficients(shapes) is None  # nothing prepared
+    twin = 2 * S["vb"] * S["wx"]  # the same column as vb wx, twice
+    rows.prepare([*shapes, twin])
+    a, b, _ = rows.fit_part(shapes)
+    assert len(b) == 700
+    expected = np.linalg.lstsq(a, b, rcond=None)[0]
+    np.testing.assert_allclose(rows.fit_coefficients(shapes), expected, rtol=1e-9)
+    assert rows.fit_coefficients([*shapes, twin]) is None
+    assert rows.fit_coefficients([*shapes[:2], S["ub"]]) is None  # ub was not prepared
