@@ -47,6 +47,9 @@ class Candidate:
     # not measured
     standard_errors: dict[str, tuple[float, float]] | None = field(default=None, compare=False)
     refit_test: dict | None = field(default=None, compare=False)  # which refit, and why (weak_noise)
+    # (term shapes, coefficients in the target's unit per each term's) when the candidate is that sum, as
+    # fitted (refit.terms_candidate): its slopes are read from the terms' own (self_feedback.slope)
+    linear: tuple[tuple[sympy.Expr, ...], np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     def measured(self) -> Candidate:
         """The candidate with weakest_t and largest_vif set (its deferred measure run, once)."""

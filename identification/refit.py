@@ -88,7 +88,7 @@ def terms_candidate(shapes: Sequence[sympy.Expr], coef: np.ndarray, engine: str,
     def predict(X_: np.ndarray, shapes: list[sympy.Expr] = shapes, coef: np.ndarray = coef) -> np.ndarray:
         return expression_columns(shapes, X_) @ coef
 
-    return Candidate(expr, 0, float("nan"), engine, predict=predict)
+    return Candidate(expr, 0, float("nan"), engine, predict=predict, linear=(tuple(shapes), coef))
 
 
 def structure_test(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],

@@ -76,8 +76,25 @@ def slope(candidate: Candidate, X: np.ndarray, target: str, moved: tuple | None 
     moved: (X moved up, X moved down, step) when already made (one pair shared by every candidate)."""
     h = _step(X, target)
     up, down, h = moved or (_moved(X, target, h), _moved(X, target, -h), h)
+    if candidate.linear is not None:
+        shapes, coef = candidate.linear
+        means = [_term_slope(s, up, down, h) for s in shapes]
+        if all(m is not None for m in means):  # each term finite on every row: the mean is the terms' sum
+            return float(np.asarray(means) @ coef)
     d = (candidate.evaluate(up) - candidate.evaluate(down)) / (2 * h)
     return float(np.nanmean(d)) if np.isfinite(d).any() else float("nan")
+
+
+def _term_slope(shape: sympy.Expr, up: np.ndarray, down: np.ndarray, h: float) -> float | None:
+    """A term's mean central difference over the moved rows (None where it is not finite on every row),
+    kept while the rows live: the polish marks thousands of moves of a few hundred terms, and evaluating
+    each move's sum on both moved arrays was 5 % of a closed-loop target's time."""
+    def mean() -> np.ndarray:
+        d = (expression_columns([shape], up)[:, 0] - expression_columns([shape], down)[:, 0]) / (2 * h)
+        return np.array([np.mean(d) if np.all(np.isfinite(d)) else np.nan])
+
+    value = float(cached(up, ("term slope", shape, id(down), h), mean)[0])
+    return value if np.isfinite(value) else None
 
 
 def slope_standard_error(candidate: Candidate, X: np.ndarray, y: np.ndarray, target: str) -> float:

@@ -4,11 +4,14 @@ model with a flag (pareto.excited, identify)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 import sympy
 
 from bridge.rotations import rotation_matrix
-from identification.body_frame import body_targets, primitive_matrix
+from identification.body_frame import PRIMITIVE_SYMBOLS, body_targets, primitive_matrix
 from identification.candidate import Candidate
 from identification.dataset import Dataset
 from identification.engine_settings import DiscoverySettings, EngineSettings, SelectionSettings
@@ -17,6 +20,7 @@ from identification.metrics import loss
 from identification.model_file import SYMBOLS
 from identification.pareto import anti_damping, attach_holdout, select
 from identification.physics_candidates import fit_terms
+from identification.refit import terms_candidate
 from identification.self_feedback import mark_self_feedback
 
 DT = 0.02  # s: 50 Hz, as PX4's vehicle_angular_velocity in a ULog
@@ -81,6 +85,32 @@ def test_a_small_positive_self_feedback_within_its_standard_error_is_not_set_asi
     assert 0.19 < c.self_feedback < 0.21  # the slope of 0.2 wx
     assert c.self_feedback_se > 1.0  # noise 0.5 over wx spread 0.01 and ~1500 rows: se ~ 1.3
     assert not anti_damping(c, SelectionSettings())
+
+
+def test_a_fitted_sum_of_terms_has_the_slope_of_its_evaluated_sum():
+    """A candidate fitted as coefficients times terms (refit.terms_candidate: the polish's moves) gets its
+    slope from its terms' mean slopes, kept per term: the slope evaluating its sum on the moved rows gives,
+    also where a term is not finite on some rows (there only the rows where it is count)."""
+    n = 1500
+    xi, u = _hover_rows(n, seed=6)
+    X = np.hstack([xi, u])
+    S = PRIMITIVE_SYMBOLS
+    shapes = [sympy.Integer(1), S["wx"], S["wx"] * S["wz"], S["wx"] * S["u1"], S["wx"] ** 2 * S["ub"]]
+    coef = np.array([0.1, -0.3, 2.0, 1e-3, 0.5])
+    fitted = terms_candidate(shapes, coef, "test")
+    assert fitted.linear is not None
+    plain = dataclasses.replace(fitted, linear=None)  # the same sum, evaluated as one
+    X_hole = X.copy()
+    X_hole[::7, 12] = np.nan  # u1 unknown on a seventh of the rows: wx u1 is not finite there
+    for rows in (X, X_hole):
+        y = np.zeros(n)
+        mark_self_feedback([fitted, plain], rows, y, "dwx")
+        assert np.isfinite(fitted.self_feedback)
+        assert fitted.self_feedback == pytest.approx(plain.self_feedback, rel=1e-12)
+    mark_self_feedback([fitted], X, np.zeros(n), "dwx")
+    ub = primitive_matrix(X, ("ub",))[:, 0]
+    exact = np.mean(-0.3 + 2.0 * X[:, 11] + 1e-3 * X[:, 12] + 1.0 * X[:, 9] * ub)  # d/d(wx), averaged
+    assert fitted.self_feedback == pytest.approx(exact, rel=1e-9)
 
 
 def _flight_with_unexcited_fy(n: int, seed: int) -> Dataset:
