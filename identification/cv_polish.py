@@ -444,10 +444,15 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     the fit rows alone); None when its expression does not read back as its terms."""
     a, y, _lag = folded.fit_part(shapes)
     # from the prepared normal equations: a 58-term move on 11,850 rows 0.06 ms against lstsq's 10.7 ms (one
-    # thread); seed 41's heavy closed loop's wx' solves 5,800 moves
+    # thread); seed 41's heavy closed loop's wx' solves 5,800 moves. lstsq on the raw columns left 119 of
+    # them with an RMS error of 0.13-0.39 rad/s^2 where their least squares is 2.1e-5 (condition number 50
+    # on unit-RMS columns): its cutoff had dropped terms
     coef = folded.fit_coefficients(shapes)
-    if coef is None:
-        coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    if coef is None:  # on unit-RMS columns: lstsq's cutoff is relative to the largest singular value, and
+        # on the raw columns (u^2 ~ 1e6 beside terms ~1e-6) it dropped whole terms (below)
+        size = np.sqrt(np.mean(a * a, axis=0))
+        size[~(size > 0)] = 1.0
+        coef = np.linalg.lstsq(a / size, y, rcond=None)[0] / size
     c = terms_candidate(shapes, coef, engine, ordered=True)  # read back without rebuilding the sum
     back = term_shapes(c.expression)
     if _key(back) != _key(shapes) or len(back) != len(shapes):
