@@ -444,12 +444,11 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     the fit rows alone); None when its expression does not read back as its terms."""
     a, y, _lag = folded.fit_part(shapes)
     # from the prepared normal equations: a 58-term move on 11,850 rows 0.06 ms against lstsq's 10.7 ms (one
-    # thread); seed 41's heavy closed loop's wx' solves 5,800 moves. lstsq on the raw columns left 119 of
-    # them with an RMS error of 0.13-0.39 rad/s^2 where their least squares is 2.1e-5 (condition number 50
-    # on unit-RMS columns): its cutoff had dropped terms
+    # thread); seed 41's heavy closed loop's wx' solves 5,800 moves. Else lstsq, on unit-RMS columns: its
+    # cutoff is relative to the largest singular value, and on the raw columns (RMS 0.16 to 6e11) it dropped
+    # 6-9 of 29 terms' directions (119 of those moves read an RMS error of 0.13-0.39 rad/s^2 for 2.1e-5)
     coef = folded.fit_coefficients(shapes)
-    if coef is None:  # on unit-RMS columns: lstsq's cutoff is relative to the largest singular value, and
-        # on the raw columns (u^2 ~ 1e6 beside terms ~1e-6) it dropped whole terms (below)
+    if coef is None:
         size = np.sqrt(np.mean(a * a, axis=0))
         size[~(size > 0)] = 1.0
         coef = np.linalg.lstsq(a / size, y, rcond=None)[0] / size

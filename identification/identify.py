@@ -82,10 +82,10 @@ R2_THRESHOLD = 0.9  # validation R^2 below this flags a target
 # after it), and take two to four times the others' time (closed-loop fang-chen-aero: 26-36 s against 5-9 s
 # per target). On two cores the third of them starts when one of the first two ends, so the two moments go
 # first and the thrust third: the moments are the longest targets more often and by more (the heavy
-# closed loop's wx' and wy' 84 and 74 s against fz's 39 s, where fz then wx' on one worker took 123 s of
-# wall and wy' then fz 112 s; closed-loop fang-chen-aero, where fz is longest, 56.6 -> 61.4 s); over the
-# 28 case runs of seed 41 (session 67's code) the two workers' simulated wall summed 764 -> 757 s, and over
-# the 39 of session 65 1643 -> 1619 s
+# closed loop's wx' and wy' 84 and 74 s against fz's 39 s: the case took 125 s, fz then wx' on one worker,
+# and simulated from those times 112 s with wy' then fz; closed-loop fang-chen-aero, where fz is longest,
+# 56.6 -> 61.4 s); over the 28 case runs of seed 41 (session 67) the two workers' simulated wall summed
+# 764 -> 757 s, and over the 39 of session 65 1643 -> 1619 s
 LONGEST_FIRST = ("dwy", "dwx", "fz", "az")
 
 

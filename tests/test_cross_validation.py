@@ -339,3 +339,19 @@ def test_a_moves_fit_from_the_prepared_equations_is_least_squares_on_the_fit_row
     np.testing.assert_allclose(rows.fit_coefficients(shapes), expected, rtol=1e-9)
     assert rows.fit_coefficients([*shapes, twin]) is None
     assert rows.fit_coefficients([*shapes[:2], S["ub"]]) is None  # ub was not prepared
+
+
+def test_a_move_the_prepared_equations_cannot_fit_is_fitted_on_unit_rms_columns():
+    """A move holding a term not prepared is fitted by lstsq on its columns scaled to unit RMS: on the raw
+    columns (u1^4 u2^2 ~ 1e16 beside wx ~ 1) lstsq's cutoff, relative to the largest singular value, drops
+    wx's direction and the constant's, and their coefficients with them."""
+    X = _rows(1000, 16)
+    shapes = [sympy.Integer(1), S["u1"] ** 4 * S["u2"] ** 2, S["wx"]]
+    y = expression_columns(shapes, X) @ np.array([0.1, 1e-17, 0.5])
+    rows = FoldedRows([(X[:700], y[:700], None, 5), (X[700:], y[700:], None, 5)], 5)
+    a, b, _ = rows.fit_part(shapes)
+    raw = np.linalg.lstsq(a, b, rcond=None)
+    assert raw[2] < 3  # the raw columns' cutoff drops a direction
+    c = move_candidate(shapes, 0.0, rows, "absolute", "test")
+    assert c is not None and c.linear is not None
+    np.testing.assert_allclose(c.linear[1], [0.1, 1e-17, 0.5], rtol=1e-6)
