@@ -59,6 +59,7 @@ from identification.paired_loss import paired_loss_t
 from identification.pareto import admissible, pick_best, select, terms_identified, within_tolerance
 from identification.refit import terms_candidate
 from identification.sparse import single_threaded_blas
+from identification.weak_noise import column_scale
 
 
 def thrust_twins(shapes: Sequence[sympy.Expr]) -> list[sympy.Expr]:
@@ -449,8 +450,7 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
     # 6-9 of 29 terms' directions (119 of those moves read an RMS error of 0.13-0.39 rad/s^2 for 2.1e-5)
     coef = folded.fit_coefficients(shapes)
     if coef is None:
-        size = np.sqrt(np.mean(a * a, axis=0))
-        size[~(size > 0)] = 1.0
+        size = column_scale(a)
         coef = np.linalg.lstsq(a / size, y, rcond=None)[0] / size
     c = terms_candidate(shapes, coef, engine, ordered=True)  # read back without rebuilding the sum
     back = term_shapes(c.expression)
