@@ -72,6 +72,43 @@ def test_one_process_or_two_give_the_same_model_file(tmp_path):
     assert "operon" in json.dumps(files[2])
 
 
+BLAS_THREADS = """
+import sys, json
+sys.path.insert(0, {tests!r})
+import threadpoolctl
+from synthetic_data import synthetic_dataset
+import identification.identify as ident
+from identification.engine import EngineSettings, OperonSettings, SparseSettings
+
+def blas_threads():
+    return max(i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas")
+
+seen = []
+real = ident.mark_self_feedback
+def spy(*args, **kwargs):  # runs inside each target's job, outside the engine's own one-thread sections
+    seen.append(blas_threads())
+    return real(*args, **kwargs)
+ident.mark_self_feedback = spy
+small = EngineSettings(sparse=SparseSettings(thresholds=10, forward_terms=8),
+                       operon=OperonSettings(population_size=100, max_length=15, optimizer_iterations=3))
+with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+    outside = blas_threads()
+    ident.identify(synthetic_dataset(800, 4), targets="dwx,dwz", budget=2, seed=5, settings=small,
+                   progress=False, jobs=1)
+    after = blas_threads()
+print(json.dumps({{"outside": outside, "seen": seen, "after": after}}))
+"""
+
+
+def test_each_target_is_fitted_with_blas_on_one_thread():
+    # the target jobs share the cores: BLAS's own threads would only contend (and change the rounding
+    # with the machine's core count)
+    run = _python(BLAS_THREADS.format(tests=str(REPO / "tests")))
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    assert got["outside"] == 2 and got["after"] == 2  # the caller's setting, before and after
+    assert got["seen"] and set(got["seen"]) == {1}
+
+
 def test_a_workers_user_error_reaches_the_caller_with_its_hint():
     code = """
 from bridge.errors import UserError
