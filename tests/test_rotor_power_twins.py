@@ -21,6 +21,7 @@ from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
 from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
 from identification.cv_polish import (
+    _expanded,
     move_candidate,
     polish_by_cross_validation,
     rotor_patterns,
@@ -107,3 +108,33 @@ def test_the_polish_merges_a_split_yaw_pattern_with_its_small_common_part():
     rows = _rows(truth, [1e-5, 2e-4, -4e-5], 6)
     start = [thrust, WZ * U2**2, WZ * (U1**2 + U2**2 + U3**2 - U4**2)]
     assert _polish(rows, start) == {str(s) for s in truth}
+
+
+def _hub(rx: float, ry: float) -> sympy.Expr:
+    """A hub's height h - r . g (m) as identification.hub_law writes it (hub 5 cm above the CG)."""
+    return S["h"] - rx * S["gx"] - ry * S["gy"] - (-0.05) * sympy.sqrt(1 - S["gx"] ** 2 - S["gy"] ** 2)
+
+
+def test_a_hub_laws_rotors_stay_apart_and_its_denominators_are_not_multiplied_out():
+    hubs = [_hub(0.16, 0.16), _hub(-0.16, -0.16), _hub(0.16, -0.16), _hub(-0.16, 0.16)]
+    law = sum(2e-9 * x**2 / H**4 + 3e-7 * x**2 / H**2 for x, H in zip((U1, U2, U3, U4), hubs, strict=True))
+    airspeed = 1e-3 * (S["ub"] - 0.05 * S["wy"]) ** 2 / hubs[0] ** 3  # no rotor speed: no group
+    thrust = U1**2 - U2**2 - U3**2 + U4**2
+    start = [thrust, WZ * U2**2, WZ * (U1**2 + U2**2 + U3**2 - U4**2), law + airspeed]
+    fitted = 8e-5 * thrust + 1.8e-7 * start[1] - 9e-8 * start[2] + 1.0 * start[3]
+    moves = [[str(t) for t in m if t not in start] for m in rotor_patterns(fitted, start)]
+    # the split yaw terms merge as without the law; each rotor's 1/H_i^k is its own cofactor, so the law
+    # makes no pattern, and each merge keeps the law as it was
+    assert ["wz*(u1**2 - u2**2 + u3**2 - u4**2)"] in moves
+    assert ["wz*(u1 - u2 + u3 - u4)", "wz*(u1 + u2 + u3 + u4)"] in moves
+    assert all(start[3] in m for m in rotor_patterns(fitted, start))
+    assert len(moves) == len(rotor_patterns(8e-5 * thrust + 1.8e-7 * start[1] - 9e-8 * start[2], start[:3]))
+    # a series law's common 1/h^k is one cofactor: its rotors merge into a pattern
+    series = [U1**2 / S["h"] ** 2, U2**2 / S["h"] ** 2, VB]
+    merged = [[str(t) for t in m if t not in series]
+              for m in rotor_patterns(4e-7 * series[0] + 4e-7 * series[1] + 0.1 * VB, series)]
+    assert ["(u1**2 + u2**2 + u3**2 + u4**2)/h**2"] in merged
+    # the law's monomials keep their hub's power as written (multiplied out, 1/H^4 is 35 terms)
+    assert dict(_expanded(3e-7 * U1**2 / hubs[0] ** 4)) == {U1**2 / hubs[0] ** 4: 3e-7}
+    assert dict(_expanded(law)) == {x**2 / H**k: c for x, H in zip((U1, U2, U3, U4), hubs, strict=True)
+                                    for k, c in ((4, 2e-9), (2, 3e-7))}  # the law as one term, likewise

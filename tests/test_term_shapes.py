@@ -24,3 +24,15 @@ def test_a_caller_editing_its_list_does_not_change_the_next_answer():
     first.append(sympy.Symbol("junk"))
     first.remove(wx)
     assert term_shapes(expr) == [wx, wy]
+
+
+def test_a_flat_sum_out_of_sympys_order_reads_as_its_rebuilt_sum():
+    u1, u2, u3, u4, wx, wz, z = (SYMBOLS[k] for k in ("u1", "u2", "u3", "u4", "wx", "wz", "z"))
+    terms = [sympy.Mul(sympy.Float(-1.3e-6), u1**2 + u2**2 + u3**2 + u4**2, evaluate=False),
+             -0.006 / z, sympy.Float(0.25), 2.1e-4 * wz * (u1 - u2 + u3 - u4), 0.3 * wx * wz,
+             sympy.Mul(sympy.Float(-7e-10), u1 - u2 + u3 + u4, u1**2 - u2**2 - u3**2 + u4**2, evaluate=False)]
+    for order in (terms, terms[::-1], terms[2:] + terms[:2]):  # written in the polish's own orders
+        expr = sympy.Add(*order, evaluate=False)
+        rebuilt = [t.as_coeff_Mul()[1] for t in sympy.Add.make_args(sympy.Add(*order))]
+        assert term_shapes(expr) == rebuilt
+        assert term_shapes(expr)[0] == 1  # the constant leads, as in sympy's sum
