@@ -511,8 +511,8 @@ def _term_shapes(expr: sympy.Expr) -> tuple[sympy.Expr, ...]:
     # 119.2 -> 117.1 s). A sum that is already flat (no nested sum, one term per shape, in sympy's order)
     # would be rebuilt as itself: read it as it is (most candidates are; 2-3 % of a closed-loop fit's CPU);
     # out of sympy's order, the rebuilt sum is its terms sorted, so sort them (a polish's moves are written
-    # in their own order: rebuilding those sums, 0.1-0.2 s each with a ground law's terms, was 5.6 of 100 s
-    # of the heavy closed loop's wx', seed 71)
+    # in their own order: rebuilding those sums, 0.1-0.2 s each for 30 terms, was 5.6 of 100 s of the heavy
+    # closed loop's wx', seed 71)
     args = sympy.Add.make_args(expr)
     if not any(a.is_Add for a in args):
         shapes = tuple(a.as_coeff_Mul()[1] for a in args)

@@ -394,8 +394,9 @@ def _expanded(shape: sympy.Expr) -> tuple[tuple[sympy.Expr, sympy.Expr], ...]:
     stands (cached: the polish's rounds and targets share terms, and expanding them was 2-3 % of a
     closed-loop fit's CPU). The numerator alone is expanded: sympy.expand also multiplies out a power of a
     sum in the denominator, a hub law's 1/H_i^k (H_i = h - r_i . g) into a polynomial of 15-35 terms, which
-    was 5.5 of 30 s of the polish of the heavy closed loop's wx' (seed 53) and tells the rotors no better
-    apart: each rotor's H_i is its own either way. A sum (the law as one term) is expanded term by term."""
+    was 3.3 of 24 s of the polish of the heavy closed loop's wx' (seed 71, pyinstrument) and tells the rotors
+    no better apart: each rotor's H_i is its own either way. A sum (the law as one term) is expanded term by
+    term."""
     if shape.is_Add:
         merged: dict[sympy.Expr, sympy.Expr] = {}
         for arg in shape.args:
