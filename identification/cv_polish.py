@@ -404,8 +404,6 @@ def _expanded(shape: sympy.Expr) -> tuple[tuple[sympy.Expr, sympy.Expr], ...]:
                 merged[m] = merged.get(m, 0) + c
         return tuple((m, c) for m, c in merged.items() if c != 0)
     numerator, denominator = sympy.fraction(shape)
-    if denominator == 1:
-        return tuple(sympy.expand(shape).as_coefficients_dict().items())
     return tuple((m / denominator, c) for m, c in sympy.expand(numerator).as_coefficients_dict().items())
 
 
