@@ -340,13 +340,17 @@ def term_t_ratios(
     a = np.asarray(columns, dtype=float)
     y = np.asarray(y, dtype=float)
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
-    a, y = a[ok], y[ok]
+    if not ok.all() or not a.flags.c_contiguous:  # a row-major copy of the finite rows, else a itself
+        a, y = a[ok], y[ok]
     if len(y) <= a.shape[1]:
         return None, np.array([np.inf])
-    std = a.std(axis=0)
+    # the columns less their means, and their spread as a.std(axis=0) computes it (the same sums, to the
+    # bit): the centred path reuses both
+    deviation = a - a.mean(axis=0)
+    std = np.sqrt(np.add.reduce(deviation * deviation, axis=0) / len(y))
     measured = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
     if offset and measured.all() and len(y) > a.shape[1] + 1:
-        if noise is None and (fast := _centred_t_ratios(a, y, max_lag)) is not None:
+        if noise is None and (fast := _centred_t_ratios(a, y, max_lag, (deviation, std))) is not None:
             return fast
         whole = noise if ok.all() else None  # the whitener holds exactly the rows it was given
         t, vif = term_t_ratios(np.hstack([np.ones((len(y), 1)), a]), y, max_lag, whole, offset=False)
@@ -388,17 +392,20 @@ def term_t_ratios(
 _CENTRED_MAX_VIF = 1e10
 
 
-def _centred_t_ratios(x: np.ndarray, y: np.ndarray, max_lag: int | None
+def _centred_t_ratios(x: np.ndarray, y: np.ndarray, max_lag: int | None,
+                      centred: tuple[np.ndarray, np.ndarray] | None = None
                       ) -> tuple[np.ndarray, np.ndarray] | None:
     """term_t_ratios of varying columns x (N,k) beside a constant offset, without stated noise: the columns
     centred and scaled to unit spread, one QR factorisation of them beside the centred target gives the
     coefficients, the residual and every VIF (N times the squared row norms of R^-1: the diagonal of the
     inverse correlation matrix), where the general path solves least squares once and each column's
     regression on the others once more (a 58-term model: 58 solves, 2.5x the time). The same least
-    squares; None (the general path) when a VIF exceeds _CENTRED_MAX_VIF or the rows are too few."""
+    squares; None (the general path) when a VIF exceeds _CENTRED_MAX_VIF or the rows are too few.
+    centred: x less its column means and x.std(axis=0), when the caller has them."""
     if len(y) <= x.shape[1] + 1:
         return None
-    z = (x - x.mean(axis=0)) / x.std(axis=0)
+    deviation, std = centred if centred is not None else (x - x.mean(axis=0), x.std(axis=0))
+    z = deviation / std
     yc = y - y.mean()
     k = z.shape[1]
     r = np.linalg.qr(np.hstack([z, yc[:, None]]), mode="r")
