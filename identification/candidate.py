@@ -50,12 +50,22 @@ class Candidate:
     # (term shapes, coefficients in the target's unit per each term's) when the candidate is that sum, as
     # fitted (refit.terms_candidate): its slopes are read from the terms' own (self_feedback.slope)
     linear: tuple[tuple[sympy.Expr, ...], np.ndarray] | None = field(default=None, repr=False, compare=False)
+    # () -> train_loss, run once when first read (trained()): the polish fits thousands of moves, each picked
+    # on its held-out loss, and their training losses are read only for the few on the reported front
+    train: Callable[[], float] | None = field(default=None, repr=False, compare=False)
 
     def measured(self) -> Candidate:
         """The candidate with weakest_t and largest_vif set (its deferred measure run, once)."""
         if self.measure is not None:
             self.weakest_t, self.largest_vif = self.measure()
             self.measure = None
+        return self
+
+    def trained(self) -> Candidate:
+        """The candidate with train_loss set (its deferred training loss computed, once)."""
+        if self.train is not None:
+            self.train_loss = self.train()
+            self.train = None
         return self
 
     def evaluate(self, X: np.ndarray) -> np.ndarray:

@@ -348,7 +348,8 @@ def term_t_ratios(
     # bit): the centred path reuses both
     deviation = a - a.mean(axis=0)
     std = np.sqrt(np.add.reduce(deviation * deviation, axis=0) / len(y))
-    measured = std > 1e-12 * np.maximum(np.abs(a).max(axis=0), 1e-300)
+    largest = np.maximum(a.max(axis=0), -a.min(axis=0))  # |a|'s column maxima, without a copy of |a|
+    measured = std > 1e-12 * np.maximum(largest, 1e-300)
     if offset and measured.all() and len(y) > a.shape[1] + 1:
         if noise is None and (fast := _centred_t_ratios(a, y, max_lag, (deviation, std))) is not None:
             return fast

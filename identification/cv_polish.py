@@ -113,7 +113,8 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             pool.setdefault(s, s)
     for s in extra:
         pool.setdefault(s, s)
-    seen = {_key(term_shapes(c.expression)) for c in candidates}
+    bits: dict[sympy.Expr, int] = {}  # each term's bit in the term sets' masks (_mask)
+    seen = {_mask(term_shapes(c.expression), bits) for c in candidates}
     distinct: dict[bytes, sympy.Expr] = {}  # one term per column of values: twins only make ties
     for s in [*term_shapes(chosen.expression), *pool]:
         distinct.setdefault(folded.column(s).tobytes(), s)
@@ -123,7 +124,6 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     expanded: set[frozenset[sympy.Expr]] = set()
     frontier: list[list[sympy.Expr]] = []
     tied: list[int] = []  # term sets the rows do not separate (bit masks): no superset is identified
-    bits: dict[sympy.Expr, int] = {}
     for _ in range(rounds):
         current = term_shapes(chosen.expression)
         states = [current, *[f for f in frontier if _key(f) != _key(current)][:beam]]
@@ -136,7 +136,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
                 continue
             expanded.add(_key(state))
             expression = chosen.expression if state is current else None
-            scored += _scored_moves(state, expression, pool, folded, kind, seen)
+            scored += _scored_moves(state, expression, pool, folded, kind, seen, bits)
             if ruled:
                 tied += [_mask(t, bits) for t in tied_subsets(state, folded, selection)]
         # a move the pick can choose is within its tolerance of the best identified loss, which is at most
@@ -258,22 +258,24 @@ def _holds_any(mask: int, subsets: list[int]) -> bool:
 
 def _scored_moves(current: list[sympy.Expr], expression: sympy.Expr | None,
                   pool: dict[sympy.Expr, sympy.Expr], folded: FoldedRows, kind: str,
-                  seen: set[frozenset[sympy.Expr]]) -> list[tuple[float, list[sympy.Expr]]]:
+                  seen: set[int], bits: dict[sympy.Expr, int]) -> list[tuple[float, list[sympy.Expr]]]:
     """(cross-validated loss, terms) of each move from the model `current` not seen before, with a finite
     loss: one-term moves over the pool, rotor-power twins and, given its fitted `expression`, rotor
-    patterns; seen is updated."""
+    patterns; seen (term sets as _mask's masks over bits) is updated."""
     have = set(current)
     others = [p for p in pool.values() if p not in have]
     folded.include(current)
     batch = folded.move_losses(current, others, kind)  # the one-term moves' losses at once
     moves = _moves(current, others)
     known = _batch_values(batch, len(current), len(others), len(moves))
+    keys = _move_masks(current, others, bits)
     moves += rotor_power_twins(current)
     if expression is not None:
         moves += rotor_patterns(expression, current)
+    keys += [_mask(shapes, bits) for shapes in moves[len(keys):]]
     scored = []
     for m, shapes in enumerate(moves):
-        key = _key(shapes)
+        key = keys[m]
         if key in seen:
             continue
         seen.add(key)
@@ -302,6 +304,22 @@ def _moves(current: list[sympy.Expr], others: list[sympy.Expr]) -> list[list[sym
     out = [current[:i] + current[i + 1:] for i in range(len(current))]
     out += [current[:i] + [p] + current[i + 1:] for i in range(len(current)) for p in others]
     out += [[*current, p] for p in others]
+    return out
+
+
+def _move_masks(current: list[sympy.Expr], others: list[sympy.Expr],
+                bits: dict[sympy.Expr, int]) -> list[int]:
+    """_mask of each of _moves(current, others), in its order, from the masks of current's terms and of
+    others' (a swap: current's mask less one term's bit, one other's bit added), where _mask would visit
+    every term of each of some 100,000 moves (current's terms distinct, others none of them)."""
+    if len(set(current)) != len(current):  # a repeated term: a removal may keep its bit
+        return [_mask(shapes, bits) for shapes in _moves(current, others)]
+    own = [_mask([t], bits) for t in current]
+    extra = [_mask([p], bits) for p in others]
+    whole = _mask(current, bits)
+    out = [whole & ~b for b in own]
+    out += [(whole & ~b) | e for b in own for e in extra]
+    out += [whole | e for e in extra]
     return out
 
 
@@ -450,24 +468,32 @@ def _power_twin(term: sympy.Expr, lower: bool) -> sympy.Expr:
     return term.xreplace({x: x**2 for x in family})
 
 
+def _fit_rows_loss(folded: FoldedRows, shapes: list[sympy.Expr], coef: np.ndarray, kind: str) -> float:
+    """The loss of the terms with these coefficients on the fit rows (a move's training loss)."""
+    a, y, _lag = folded.fit_part(shapes)
+    return loss_fn(y, a @ coef, kind)
+
+
 def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows, kind: str,
                engine: str) -> Candidate | None:
-    """A move fitted (least squares) on the fit rows, its held-out loss the cross-validated one, its t
-    ratios and VIF measured when the pick asks (FoldedRows.identification: on the fit and pick rows, or
-    the fit rows alone); None when its expression does not read back as its terms."""
-    a, y, _lag = folded.fit_part(shapes)
+    """A move fitted (least squares) on the fit rows, its held-out loss the cross-validated one, its training
+    loss computed when read (Candidate.trained), its t ratios and VIF measured when the pick asks
+    (FoldedRows.identification: on the fit and pick rows, or the fit rows alone); None when its expression
+    does not read back as its terms."""
     # from the prepared normal equations: a 58-term move on 11,850 rows 0.06 ms against lstsq's 10.7 ms (one
     # thread); seed 41's heavy closed loop's wx' solves 5,800 moves. Else lstsq, on unit-RMS columns: its
     # cutoff is relative to the largest singular value, and on the raw columns (RMS 0.16 to 6e11) it dropped
     # 6-9 of 29 terms' directions (119 of those moves read an RMS error of 0.13-0.39 rad/s^2 for 2.1e-5)
     coef = folded.fit_coefficients(shapes)
     if coef is None:
+        a, y, _lag = folded.fit_part(shapes)
         size = column_scale(a)
         coef = np.linalg.lstsq(a / size, y, rcond=None)[0] / size
     c = terms_candidate(shapes, coef, engine, ordered=True)  # read back without rebuilding the sum
     back = term_shapes(c.expression)
     if _key(back) != _key(shapes) or len(back) != len(shapes):
         return None  # the expression would not read back as these terms (a zero coefficient)
-    c.complexity, c.train_loss, c.holdout_loss = model_size(shapes), loss_fn(y, a @ coef, kind), cv_loss
+    c.complexity, c.holdout_loss = model_size(shapes), cv_loss
+    c.train = functools.partial(_fit_rows_loss, folded, shapes, coef, kind)
     c.measure = lambda: folded.identification(shapes)
     return c

@@ -82,7 +82,8 @@ def attach_holdout(
 
 
 def _score(c: Candidate) -> float:
-    value = c.holdout_loss if c.holdout_loss is not None and not math.isnan(c.holdout_loss) else c.train_loss
+    value = (c.holdout_loss if c.holdout_loss is not None and not math.isnan(c.holdout_loss)
+             else c.trained().train_loss)
     return value if math.isfinite(value) else float("inf")
 
 
@@ -217,7 +218,7 @@ def front_points(candidates: Sequence[Candidate], chosen: Candidate | None = Non
     return [
         ParetoPoint(
             complexity=int(c.complexity),
-            loss=float(c.train_loss),
+            loss=float(c.trained().train_loss),
             holdout_loss=None
             if c.holdout_loss is None or math.isnan(c.holdout_loss)
             else float(c.holdout_loss),

@@ -29,11 +29,12 @@ def replacements(
     correlations: dict[int, np.ndarray] | None = None,
 ) -> list[int]:
     """Column indices of F (N,M) that fit y (N,) better than a term of the model in its place (module
-    docstring). terms: the model's columns of F (its constant implied); exclude: columns not to propose (the
-    pool); Z: F standardised (identification.discovery._standardized, NaN where unusable); weights (N,): row
-    weights of the sums of squares; nearest: how many of the features most correlated with a term are tried;
-    correlations: a term's |correlation| with every column of Z, kept by the caller for as long as Z is the
-    same (the rounds' picks share most terms, and each is a pass over all of Z).
+    docstring; F column-major gathers its columns fastest, the same values). terms: the model's columns of F
+    (its constant implied); exclude: columns not to propose (the pool); Z: F standardised
+    (identification.discovery._standardized, NaN where unusable); weights (N,): row weights of the sums of
+    squares; nearest: how many of the features most correlated with a term are tried; correlations: a term's
+    |correlation| with every column of Z, kept by the caller for as long as Z is the same (the rounds' picks
+    share most terms, and each is a pass over all of Z).
     """
     terms = [int(j) for j in terms]
     if not terms:

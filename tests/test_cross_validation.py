@@ -355,3 +355,22 @@ def test_a_move_the_prepared_equations_cannot_fit_is_fitted_on_unit_rms_columns(
     c = move_candidate(shapes, 0.0, rows, "absolute", "test")
     assert c is not None and c.linear is not None
     np.testing.assert_allclose(c.linear[1], [0.1, 1e-17, 0.5], rtol=1e-6)
+
+
+def test_a_moves_training_loss_is_its_loss_on_the_fit_rows_once_read():
+    """A polish move's training loss is computed when first read (Candidate.trained: the pick reads the
+    held-out loss, the model file's front the training loss): then the loss of its fit on the fit rows."""
+    X = _rows(1000, 17)
+    shapes = [sympy.Integer(1), S["u1"] * S["wz"], S["vb"] * S["wx"]]
+    y = expression_columns(shapes, X) @ np.array([0.2, 1e-3, -0.4])
+    y = y + 0.05 * np.random.default_rng(18).standard_normal(len(y))
+    rows = FoldedRows([(X[:700], y[:700], None, 5), (X[700:], y[700:], None, 5)], 5)
+    rows.prepare(shapes)
+    c = move_candidate(shapes, 0.123, rows, "absolute", "test")
+    assert c is not None and np.isnan(c.train_loss) and c.holdout_loss == 0.123
+    a, b, _ = rows.fit_part(shapes)
+    fitted = np.linalg.lstsq(a, b, rcond=None)[0]
+    expected = float(np.mean(np.abs(b - a @ fitted)))
+    assert c.trained().train_loss == pytest.approx(expected, rel=1e-9)
+    assert c.train is None  # computed once
+    assert select([c], EngineSettings().selection) is c

@@ -20,7 +20,7 @@ from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
 from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
-from identification.cv_polish import move_candidate, polish_by_cross_validation
+from identification.cv_polish import _mask, _move_masks, _moves, move_candidate, polish_by_cross_validation
 from identification.engine import EngineSettings
 from identification.engine_settings import load_engine_settings
 from identification.true_model import random_states
@@ -74,3 +74,19 @@ def test_the_pick_alone_settings_file_restores_the_polish_before_the_beam():
     assert (selection.cv_polish_beam, selection.cv_polish_rounds) == (0, 4)
     defaults = EngineSettings().selection
     assert (defaults.cv_polish_beam, defaults.cv_polish_rounds) == (2, 8)
+
+
+def test_each_moves_mask_is_the_mask_of_its_terms():
+    """The one-term moves' masks, made from the model's and each other term's bit, are _mask of each move's
+    terms (the polish tells moves it has seen apart by them), also for a model holding a term twice."""
+    terms = [S["wx"], S["wy"] * S["wz"], S["u1"] ** 2, S["vb"] * abs(S["vb"]), sympy.Integer(1)]
+    twice = [terms[0], terms[0]]
+    for current, others in ((terms[:3], terms[3:]), (terms[1:], terms[:1]), (twice, terms[1:])):
+        bits: dict = {}
+        masks = _move_masks(current, others, bits)
+        moves = _moves(current, others)
+        assert masks == [_mask(m, bits) for m in moves]
+        # equal masks exactly where the moves hold the same terms
+        for a in range(len(moves)):
+            for b in range(len(moves)):
+                assert (masks[a] == masks[b]) == (frozenset(moves[a]) == frozenset(moves[b]))
