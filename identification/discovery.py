@@ -44,6 +44,7 @@ from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, PRIMITIVES, primitive_matrix
 from identification.candidate import Candidate, Progress
 from identification.collinearity import term_identification, term_shapes, term_t_ratios
+from identification.column_buffer import ColumnBuffer
 from identification.engine_settings import POLISH_RULES, DiscoverySettings, SelectionSettings, SparseSettings
 from identification.feature_space import (
     OPERATORS,
@@ -132,9 +133,9 @@ class _Columns:
         """The primitive matrix of X (N, n_primitives)."""
         return self._entry(X)[0]
 
-    def __call__(self, X: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    def __call__(self, X: np.ndarray, indices: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         P, cache = self._entry(X)
-        return self.space.columns(P, indices, cache)
+        return self.space.columns(P, indices, cache, out)
 
     def _entry(self, X: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         for key, P, cache in self._cache:
@@ -236,15 +237,24 @@ class DiscoveryEngine:
         start = time.perf_counter()
         self._features = {}
         key = (s, _rows_key(X))
-        if s.rungs < 3 and _LAST_SPACE.get("key") == key:  # the six targets of one flight share it
-            space, F, Z = _LAST_SPACE["space"], _LAST_SPACE["F"], _LAST_SPACE["Z"]
+        room = max(s.hub_law_fits, 1)  # a hub law's column each, appended in place (column_buffer)
+        # the matrices grown by columns: the features F, their standardized copy Z, Z's NaN-free copy and F
+        # column-major (the last two made when first needed); the six targets of one flight share them
+        grown: dict[str, ColumnBuffer] = {}
+        if s.rungs < 3 and _LAST_SPACE.get("key") == key:
+            space, grown = _LAST_SPACE["space"], _LAST_SPACE["grown"]
+            F, Z = grown["F"].truncate(len(space)), grown["Z"].truncate(len(space))
+            for k in ("Zf", "Fc"):  # a target before this one may have appended its hub laws
+                if k in grown:
+                    grown[k].truncate(len(space))
         else:
             space = self.build_space(X)
-            F = _Columns(space)(X, np.arange(len(space)))
-            Z = _standardized(F)
+            grown["F"], grown["Z"] = (ColumnBuffer(len(X), len(space), room) for _ in range(2))
+            F = _Columns(space)(X, np.arange(len(space)), out=grown["F"].view())
+            Z = _standardized(F, out=grown["Z"].view())
             _LAST_SPACE.clear()
             if s.rungs < 3:  # rung 3 grows the space per target: not shared
-                _LAST_SPACE.update(key=key, space=space, F=F, Z=Z)
+                _LAST_SPACE.update(key=key, space=space, grown=grown)
         columns = _Columns(space)
         if s.rungs >= 3 and "mul" in s.operators:
             scores = _screen_scores(Z, y)
@@ -252,8 +262,9 @@ class DiscoveryEngine:
             unary = [i for i in range(len(space)) if space.rungs[i] == 1]
             added = grow_products(space, rung2, unary, 3)
             if added:
-                F = np.hstack([F, columns(X, np.asarray(added, int))])
-                Z = _standardized(F)
+                F = grown["F"].append(columns(X, np.asarray(added, int)))
+                grown["Z"] = ColumnBuffer.holding(_standardized(F), room)
+                Z = grown["Z"].view()
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
         # what the flight cannot identify, for identify's terminal and model file (identifiability notes)
@@ -264,8 +275,10 @@ class DiscoveryEngine:
         weak, weak_h = self.weak or (None, None)
         y_point = y
         if weak is not None:  # every column and the target integrated against the test functions
-            F = np.asarray(weak @ F)
-            Z = _standardized(F)
+            grown = {"F": ColumnBuffer.holding(np.asarray(weak @ F), room)}
+            F = grown["F"].view()
+            grown["Z"] = ColumnBuffer(F.shape[0], F.shape[1], room)
+            Z = _standardized(F, out=grown["Z"].view())
             y = weak @ y
         scale = float(np.std(yh if weak_h is None else weak_h @ yh)) if len(yh) else 1.0
         basis = _Basis(len(y))
@@ -310,8 +323,15 @@ class DiscoveryEngine:
                 before = (best, len(candidates), space, columns, F, Z, pool)
                 series = series or before
                 space, law, columns = added
-                F = np.hstack([F, self._on_fit_rows(columns(X, np.asarray([law])))])
-                Z = np.hstack([Z, _standardized(F[:, [law]])])
+                F = grown["F"].append(self._on_fit_rows(columns(X, np.asarray([law]))))
+                z_law = _standardized(F[:, [law]])
+                Z = grown["Z"].append(z_law)
+                if zf is not None:  # Z's NaN-free copy grown alike (as np.nan_to_num(Z) would be)
+                    zf = (Z, grown["Zf"].append(np.nan_to_num(z_law, nan=0.0)))
+                    zf += (np.sum(zf[1] * zf[1], axis=0), np.all(np.isfinite(Z[:1]), axis=0))
+                if by_column is not None:
+                    by_column = (F, grown["Fc"].append(F[:, [law]]))
+                correlations = {}  # per term over Z's columns: one more now
                 off = heights = space.height_features()
                 pool = [i for i in pool if not off[i]] + basis.add_first(F, [law])
                 swaps = [i for i in swaps if not off[i]]
@@ -319,7 +339,11 @@ class DiscoveryEngine:
             model_terms = self._features.get(id(best), np.zeros(0, int))
             model_cols = F[:, model_terms]
             if zf is None or zf[0] is not Z:  # Z's NaN-free copy and column sums, once per space
-                zf = (Z, np.nan_to_num(Z, nan=0.0))
+                if "Zf" not in grown or grown["Zf"].used != Z.shape[1]:
+                    grown["Zf"] = ColumnBuffer(Z.shape[0], Z.shape[1], room)
+                    np.copyto(grown["Zf"].view(), Z)
+                    np.nan_to_num(grown["Zf"].view(), nan=0.0, copy=False)
+                zf = (Z, grown["Zf"].view())
                 zf += (np.sum(zf[1] * zf[1], axis=0), np.all(np.isfinite(Z[:1]), axis=0))
                 correlations = {}
             scores = _projected_scores(Z, residual if weights is None else weights * residual, model_cols,
@@ -355,7 +379,10 @@ class DiscoveryEngine:
             if loss == "absolute":  # the few rows with large target errors do not choose the terms
                 weights = huber_weights(residual)
             if by_column is None or by_column[0] is not F:
-                by_column = (F, np.asfortranarray(F))
+                if "Fc" not in grown or grown["Fc"].used != F.shape[1]:
+                    grown["Fc"] = ColumnBuffer(F.shape[0], F.shape[1], room, order="F")
+                    np.copyto(grown["Fc"].view(), F)
+                by_column = (F, grown["Fc"].view())
             swaps = replacements(by_column[1], Z, y, [int(i) for i in self._features.get(id(best), [])], pool,
                                  weights, correlations=correlations)
             swaps = [i for i in swaps if not off[i]]
@@ -1241,13 +1268,18 @@ def _exact(c: Candidate, scale: float) -> bool:
     return c.holdout_loss is not None and bool(c.holdout_loss <= 1e-9 * scale)
 
 
-def _standardized(F: np.ndarray) -> np.ndarray:
-    """Columns centred and scaled to unit RMS; unusable columns (constant, not finite) all NaN."""
+def _standardized(F: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Columns centred and scaled to unit RMS; unusable columns (constant, not finite) all NaN; written
+    into `out` (F's shape) when given."""
     with np.errstate(all="ignore"):
         fc = F - F.mean(axis=0)
         std = np.sqrt(np.mean(fc * fc, axis=0))
         ok = (std > 1e-12 * np.maximum(np.abs(F).max(axis=0), 1e-300)) & np.all(np.isfinite(F), axis=0)
-        return np.where(ok, fc / np.where(ok, std, 1.0), np.nan)
+        if out is None:
+            return np.where(ok, fc / np.where(ok, std, 1.0), np.nan)
+        np.divide(fc, np.where(ok, std, 1.0), out=out)
+        out[:, ~ok] = np.nan
+        return out
 
 
 def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:

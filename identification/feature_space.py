@@ -134,9 +134,11 @@ class FeatureSpace:
         self.pruned[why] = self.pruned.get(why, 0) + 1
 
     def columns(
-        self, P: np.ndarray, indices: Sequence[int], cache: dict[int, np.ndarray] | None = None
+        self, P: np.ndarray, indices: Sequence[int], cache: dict[int, np.ndarray] | None = None,
+        out: np.ndarray | None = None,
     ) -> np.ndarray:
-        """The features' values (N, len(indices)) from the primitive matrix P (N, n_primitives)."""
+        """The features' values (N, len(indices)) from the primitive matrix P (N, n_primitives), written into
+        `out` (N, len(indices)) when given."""
         cache = {} if cache is None else cache
 
         def col(i: int) -> np.ndarray:
@@ -174,7 +176,7 @@ class FeatureSpace:
             cache[i] = v
             return v
 
-        out = np.empty((P.shape[0], len(indices)))
+        out = np.empty((P.shape[0], len(indices))) if out is None else out
         for j, i in enumerate(indices):
             out[:, j] = col(int(i))
         return out

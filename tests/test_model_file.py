@@ -255,3 +255,28 @@ def test_state_derivative_stacks_velocity_accelerations_and_the_known_euler_rate
     np.testing.assert_allclose(
         [float(k[n].subs(s)) for n in ("dphi", "dtheta", "dpsi")], d[3, 6:9], rtol=1e-12
     )
+
+
+def test_printed_subterms_are_reused_only_where_the_same_expression_stands():
+    # expression_to_string keeps each compound node's string (model_file._PRINTED): what it writes is what
+    # the plain printer writes, node for node, also for nodes sympy hashes alike but does not call equal
+    # (2.0*x and 2*x) and for a term shared by several expressions
+    from sympy.printing.str import StrPrinter
+
+    from identification.model_file import expression_to_string
+
+    class Plain(StrPrinter):
+        def _print_Float(self, expr):
+            return repr(float(expr))
+
+    x, u1, wz = S["wx"], S["u1"], S["wz"]
+    shared = wz * (u1**2 - 3 * S["u2"] ** 2) / (1 + x**2) ** 3
+    exprs = [sympy.Float(2.0) * x, 2 * x, sympy.Float(0.1) * shared + 2 * x,
+             sympy.Mul(sympy.Float(-1.5e-7), shared, evaluate=False) - sympy.Float(2.0) * x,
+             sympy.Abs(shared) * sympy.sqrt(x**2 + wz**2), -shared]
+    for _ in range(2):  # the second pass reads every node from what the first kept
+        for e in exprs:
+            assert expression_to_string(e) == Plain({"order": "none"}).doprint(e)
+    assert expression_to_string(exprs[0]) == "2.0*wx" and expression_to_string(exprs[1]) == "2*wx"
+    for e in exprs:  # and reads back as the same expression
+        assert parse_expression(expression_to_string(e)) == e
