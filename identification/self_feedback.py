@@ -64,18 +64,25 @@ def _moved(X: np.ndarray, target: str, step: float) -> np.ndarray:
 
 
 def _step(X: np.ndarray, target: str) -> float:
-    """The finite-difference step: 5% of the own state's spread on the rows, at least 1e-3."""
-    kind, k = OWN_STATE[target]
-    col = X[:, k] if kind == "x" else primitive_matrix(X, (("ub", "vb", "wb")[k],))[:, 0]
-    return max(1e-3, 0.05 * float(np.std(col) or 1.0))
+    """The finite-difference step: 5% of the own state's spread on the rows, at least 1e-3 (kept while X
+    lives: the body velocity's rotation of every row was 1.7 s of a heavy closed loop's fz polish, which
+    marks its moves one at a time)."""
+    def step() -> np.ndarray:
+        kind, k = OWN_STATE[target]
+        col = X[:, k] if kind == "x" else primitive_matrix(X, (("ub", "vb", "wb")[k],))[:, 0]
+        return np.array([max(1e-3, 0.05 * float(np.std(col) or 1.0))])
+
+    return float(cached(X, ("self_feedback step", target), step)[0])
 
 
 def slope(candidate: Candidate, X: np.ndarray, target: str, moved: tuple | None = None) -> float:
     """Mean over the rows of d(candidate)/d(own state) (module docstring), target unit per state unit.
 
     moved: (X moved up, X moved down, step) when already made (one pair shared by every candidate)."""
-    h = _step(X, target)
-    up, down, h = moved or (_moved(X, target, h), _moved(X, target, -h), h)
+    if moved is None:
+        h = _step(X, target)
+        moved = (_moved(X, target, h), _moved(X, target, -h), h)
+    up, down, h = moved
     if candidate.linear is not None:
         shapes, coef = candidate.linear
         means = [_term_slope(s, up, down, h) for s in shapes]

@@ -180,3 +180,26 @@ def test_rate_noise_with_its_differentiation_artefact_gives_no_anti_damping_mode
     assert expr.is_number, expr
     plain = fit_terms(("1", "wx"), np.hstack([xi, u]), dwx, "squared")
     assert "wx" in str(plain.expression) and plain.weakest_t > 5  # the artefact is there to be fitted
+
+
+def test_a_body_forces_slope_takes_the_step_of_the_rows_it_is_measured_on():
+    """fx's own state is the body velocity ub, moved along the body x axis by 5 % of its spread on the rows
+    (self_feedback._step, kept per rows array): a cubic term's central difference is 3 ub^2 + h^2, so its
+    slope tells the step used; marked alone or beside another candidate, on rows of another spread."""
+    n = 1500
+    xi, u = _hover_rows(n, seed=8)
+    X = np.hstack([xi, u])
+    X[:, 3:6] += np.array([2.0, -1.0, 0.5])  # some forward flight: ub spreads
+    ub = PRIMITIVE_SYMBOLS["ub"]
+    for rows in (X, np.hstack([X[:, :3], 3 * X[:, 3:6], X[:, 6:]])):
+        b = primitive_matrix(rows, ("ub",))[:, 0]
+        h = 0.05 * float(np.std(b))
+        expected = float(np.mean(3 * b**2)) + h**2
+        cubic = terms_candidate([ub**3], np.array([1.0]), "test")
+        linear = terms_candidate([ub], np.array([-0.4]), "test")
+        mark_self_feedback([cubic, linear], rows, np.zeros(n), "fx")
+        assert cubic.self_feedback == pytest.approx(expected, rel=1e-9)
+        assert linear.self_feedback == pytest.approx(-0.4, rel=1e-9)
+        again = terms_candidate([ub**3], np.array([1.0]), "test")
+        mark_self_feedback([again], rows, np.zeros(n), "fx")
+        assert again.self_feedback == cubic.self_feedback
