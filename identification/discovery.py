@@ -249,9 +249,10 @@ class DiscoveryEngine:
                     grown[k].truncate(len(space))
         else:
             space = self.build_space(X)
-            grown["F"], grown["Z"] = (ColumnBuffer(len(X), len(space), room) for _ in range(2))
+            grown["F"] = ColumnBuffer(len(X), len(space), room)
             F = _Columns(space)(X, np.arange(len(space)), out=grown["F"].view())
-            Z = _standardized(F, out=grown["Z"].view())
+            grown["Z"] = _standardized_buffer(F, room)
+            Z = grown["Z"].view()
             _LAST_SPACE.clear()
             if s.rungs < 3:  # rung 3 grows the space per target: not shared
                 _LAST_SPACE.update(key=key, space=space, grown=grown)
@@ -263,7 +264,7 @@ class DiscoveryEngine:
             added = grow_products(space, rung2, unary, 3)
             if added:
                 F = grown["F"].append(columns(X, np.asarray(added, int)))
-                grown["Z"] = ColumnBuffer.holding(_standardized(F), room)
+                grown["Z"] = _standardized_buffer(F, room)
                 Z = grown["Z"].view()
         self.timings = {"grow": time.perf_counter() - start}
         self.stats = {"features": len(space), "pruned": dict(space.pruned)}
@@ -277,8 +278,8 @@ class DiscoveryEngine:
         if weak is not None:  # every column and the target integrated against the test functions
             grown = {"F": ColumnBuffer.holding(np.asarray(weak @ F), room)}
             F = grown["F"].view()
-            grown["Z"] = ColumnBuffer(F.shape[0], F.shape[1], room)
-            Z = _standardized(F, out=grown["Z"].view())
+            grown["Z"] = _standardized_buffer(F, room)
+            Z = grown["Z"].view()
             y = weak @ y
         scale = float(np.std(yh if weak_h is None else weak_h @ yh)) if len(yh) else 1.0
         basis = _Basis(len(y))
@@ -340,8 +341,7 @@ class DiscoveryEngine:
             model_cols = F[:, model_terms]
             if zf is None or zf[0] is not Z:  # Z's NaN-free copy and column sums, once per space
                 if "Zf" not in grown or grown["Zf"].used != Z.shape[1]:
-                    grown["Zf"] = ColumnBuffer(Z.shape[0], Z.shape[1], room)
-                    np.copyto(grown["Zf"].view(), Z)
+                    grown["Zf"] = ColumnBuffer.holding(Z, room)
                     np.nan_to_num(grown["Zf"].view(), nan=0.0, copy=False)
                 zf = (Z, grown["Zf"].view())
                 zf += (np.sum(zf[1] * zf[1], axis=0), np.all(np.isfinite(Z[:1]), axis=0))
@@ -380,8 +380,7 @@ class DiscoveryEngine:
                 weights = huber_weights(residual)
             if by_column is None or by_column[0] is not F:
                 if "Fc" not in grown or grown["Fc"].used != F.shape[1]:
-                    grown["Fc"] = ColumnBuffer(F.shape[0], F.shape[1], room, order="F")
-                    np.copyto(grown["Fc"].view(), F)
+                    grown["Fc"] = ColumnBuffer.holding(F, room, order="F")
                 by_column = (F, grown["Fc"].view())
             swaps = replacements(by_column[1], Z, y, [int(i) for i in self._features.get(id(best), [])], pool,
                                  weights, correlations=correlations)
@@ -1280,6 +1279,13 @@ def _standardized(F: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         np.divide(fc, np.where(ok, std, 1.0), out=out)
         out[:, ~ok] = np.nan
         return out
+
+
+def _standardized_buffer(F: np.ndarray, room: int) -> ColumnBuffer:
+    """F standardized (_standardized) into a new ColumnBuffer with room for `room` more columns."""
+    out = ColumnBuffer(F.shape[0], F.shape[1], room)
+    _standardized(F, out=out.view())
+    return out
 
 
 def _screen_scores(Z: np.ndarray, r: np.ndarray) -> np.ndarray:
