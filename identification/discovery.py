@@ -552,7 +552,7 @@ class DiscoveryEngine:
             arm = arm if shares is None else shares / np.max(np.abs(shares))
         fitted = fit_hub_law(inputs, y, rest, s.hub_law_powers, weak, s.hub_law_evaluations, start,
                              s.hub_law_airspeed or (s.hub_law_refit_airspeed and bool(space.laws)), arm,
-                             s.hub_law_min_height)
+                             s.hub_law_min_height, rational=s.hub_law_rational)
         self.timings["hub_law"] = self.timings.get("hub_law", 0.0) + time.perf_counter() - clock
         if fitted is None:
             return None

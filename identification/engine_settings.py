@@ -211,6 +211,11 @@ class DiscoverySettings:
     # 0.0-0.13 of the CG's height and were then not kept; the true hubs stay above 0.8 of it on the bench's
     # truth flights (README, "Hubs at the ground")
     hub_law_min_height: float = 0.25
+    # a last stage of each hub law's fit divides its parts by D_i = 1 - d1/H_i - d2/H_i^2 and refits the hubs
+    # with d1 and d2 (identification.hub_law, "A law that is not a series"): a series in 1/H_i stops at
+    # hub_law_powers, and its truncation moved the hubs (seed 71's heavy closed loop: 0.3 mm off, 7x the
+    # targets' rounding left on wx' at the true hubs). Session 72
+    hub_law_rational: bool = True
 
 
 VIF_RULES = ("scaled", "cap")  # SelectionSettings.vif_rule

@@ -86,25 +86,64 @@ def test_the_hubs_are_found_from_the_thrust_alone():
 
 
 @pytest.mark.parametrize("airspeed", [False, True])
-def test_the_laws_slope_in_its_offsets_is_its_columns_difference(airspeed):
+@pytest.mark.parametrize("rational", [False, True])
+def test_the_laws_slope_in_its_offsets_is_its_columns_difference(airspeed, rational):
     """The fit's jacobian (Kaufman's variable projection) is built from HubColumns.slopes, the law's
     derivative in each hub offset at fixed coefficients, through the weak form and the projection: it is
-    the central difference of the law's columns (the heights through the tilt, the hubs' airspeed)."""
+    the central difference of the law's columns (the heights through the tilt, the hubs' airspeed), and
+    over a denominator D_i = 1 - d1/H_i - d2/H_i^2 also in d1 and d2."""
     X = _rows(500, 3)
     P = primitive_matrix(X, HUB_PRIMITIVES)
     rng = np.random.default_rng(4)
     weak = rng.normal(size=(200, 500))
     table = HubColumns(P, 3, airspeed, weak, lambda A: A - A.mean(axis=0))
     r = np.asarray(GROUND_VEHICLE.rotor_arms).ravel() + rng.normal(0.0, 0.01, 12)
+    d = np.array([0.003, 0.004]) if rational else None  # m, m^2: D_i 0.95-0.99 at these heights
+    p = r if d is None else np.concatenate([r, d])
     thrust = rng.normal(size=(4, 3)) * 1e-6
     air = rng.normal(size=(4, 3)) * 1e-3 if airspeed else None
     b = np.concatenate([thrust.ravel(), *([air.ravel()] if airspeed else [])])
-    step = 1e-6  # m
-    numeric = np.column_stack([(table.columns(r + step * e) - table.columns(r - step * e)) @ b / (2 * step)
-                               for e in np.eye(12)])
-    slopes = table.slopes(r, thrust, air)
-    assert slopes.shape == (200, 12)
+    step = 1e-6  # m (m^2 for d2)
+
+    def columns(q: np.ndarray) -> np.ndarray:
+        return table.columns(q[:12], q[12:] if rational else None)
+
+    numeric = np.column_stack([(columns(p + step * e) - columns(p - step * e)) @ b / (2 * step)
+                               for e in np.eye(len(p))])
+    slopes = table.slopes(r, thrust, air, d)
+    assert slopes.shape == (200, 14 if rational else 12)
     np.testing.assert_allclose(slopes, numeric, atol=1e-6 * np.abs(numeric).max())
+
+
+@pytest.mark.parametrize("target", ["fz", "dwy"])
+def test_a_law_with_a_pole_is_found_exactly_over_a_denominator(target):
+    """The SITL's ground law (Cheeseman-Bennett, T/T_inf = 1/(1 - (R/4H)^2)) is no finite series in 1/H:
+    the series' truncation moves the hubs (0.6-2.2 mm here) and leaves a few parts in a thousand of the law
+    on another flight. The rational stage divides the series by a denominator D = 1 - d1/H - d2/H^2 with
+    d1 and d2 free (the series is d1 = d2 = 0; nothing of the law's form is given) and refits the hubs with
+    them: the hubs to a micron, d2 the law's (R/4)^2 and d1 zero, the law exact on another flight."""
+    X = _rows(3000, 0)
+    truth, far = _law(target)
+    y = body_values(truth, X)
+    rest = np.column_stack([np.ones(len(X)), body_values(far, X)])
+    P = primitive_matrix(X, HUB_PRIMITIVES)
+    arms = np.asarray(GROUND_VEHICLE.rotor_arms)  # m FRD about the CG
+    series = fit_hub_law(P, y, rest, 3)
+    law = fit_hub_law(P, y, rest, 3, rational=True)
+    assert series is not None and law is not None and not series.denominator
+    assert np.abs(np.asarray(series.offsets) - arms).max() > 5e-4
+    np.testing.assert_allclose(np.asarray(law.offsets), arms, atol=1e-6)
+    d1, d2 = law.denominator
+    radius = GROUND_VEHICLE.aero.ground_effect.rotor_radius  # m
+    assert abs(d1) < 1e-6 and d2 == pytest.approx((radius / 4.0) ** 2, rel=1e-6)
+    Xv = _rows(1000, 5)
+    assert height_law_error(series.expression() + far, truth - far, Xv) > 1e-3
+    assert height_law_error(law.expression() + far, truth - far, Xv) < 1e-8
+    # its expression is its columns' law, and reads as a height law (a power of a polynomial in h)
+    Pv = primitive_matrix(Xv, HUB_PRIMITIVES)
+    np.testing.assert_allclose(body_values(law.expression(), Xv), law.values(Pv), rtol=1e-9,
+                               atol=1e-12 * np.abs(law.values(Pv)).max())
+    assert height_terms(law.expression()) != 0
 
 
 def test_the_arms_are_found_before_the_heights():
