@@ -53,6 +53,9 @@ class Candidate:
     # () -> train_loss, run once when first read (trained()): the polish fits thousands of moves, each picked
     # on its held-out loss, and their training losses are read only for the few on the reported front
     train: Callable[[], float] | None = field(default=None, repr=False, compare=False)
+    # () -> expression, built when first read (Candidate.expression): the polish fits thousands of moves
+    # and reads a few of their expressions (the pick's, its ties', the reported front's)
+    build: Callable[[], sympy.Expr] | None = field(default=None, repr=False, compare=False)
 
     def measured(self) -> Candidate:
         """The candidate with weakest_t and largest_vif set (its deferred measure run, once)."""
@@ -77,6 +80,21 @@ class Candidate:
             )
         with np.errstate(all="ignore"):
             return np.asarray(self.predict(np.asarray(X, float)), float)
+
+
+def _expression(self: Candidate) -> sympy.Expr:
+    if self.build is not None:
+        self._expression, self.build = self.build(), None
+    return self._expression
+
+
+def _set_expression(self: Candidate, value: sympy.Expr) -> None:
+    self._expression, self.build = value, None
+
+
+# the expression field read through its builder (Candidate.build) when the candidate has one; the dataclass's
+# __init__, __eq__ and __repr__ go through the property as through the field
+Candidate.expression = property(_expression, _set_expression)  # type: ignore[assignment]
 
 
 def make_candidate(

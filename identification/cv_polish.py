@@ -42,7 +42,7 @@ a term's VIF only grows with the terms beside it, so no such move could be picke
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Container, Iterable, Sequence
 
 import numpy as np
 import sympy
@@ -109,12 +109,14 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
         return chosen  # nothing scored: no tolerance to compare moves against
     pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
     for c in candidates:
-        for s in term_shapes(c.expression):
-            pool.setdefault(s, s)
+        for s in new_shapes(c, pool):
+            pool[s] = s
     for s in extra:
         pool.setdefault(s, s)
     bits: dict[sympy.Expr, int] = {}  # each term's bit in the term sets' masks (_mask)
-    seen = {_mask(term_shapes(c.expression), bits) for c in candidates}
+    # a set's mask does not depend on its terms' order, nor does any test on masks on which term got which bit
+    seen = {_mask(c.linear[0] if c.build is not None else term_shapes(c.expression), bits)
+            for c in candidates}
     distinct: dict[bytes, sympy.Expr] = {}  # one term per column of values: twins only make ties
     for s in [*term_shapes(chosen.expression), *pool]:
         distinct.setdefault(folded.column(s).tobytes(), s)
@@ -167,6 +169,19 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
         if key_now in expanded and not frontier[:beam]:
             return chosen
     return chosen
+
+
+def new_shapes(c: Candidate, known: Container[sympy.Expr]) -> list[sympy.Expr]:
+    """A candidate's terms not in `known`, in the order its expression writes them (term_shapes). A move
+    whose expression is not built yet (Candidate.build) is read from its fitted terms when at most one of
+    them is new (then their order does not matter): a later polish reads every earlier move's terms, and
+    building their sums was most of what reading them cost (seed 71's heavy closed loop's wx': 3,875 of
+    3,981 moves)."""
+    if c.build is not None and c.linear is not None:
+        new = [s for s in dict.fromkeys(c.linear[0]) if s not in known]
+        if len(new) <= 1:
+            return new
+    return [s for s in term_shapes(c.expression) if s not in known]
 
 
 def _pickable_moves(eligible: list[tuple[float, list[sympy.Expr]]], candidates: Sequence[Candidate],
@@ -478,8 +493,9 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
                engine: str) -> Candidate | None:
     """A move fitted (least squares) on the fit rows, its held-out loss the cross-validated one, its training
     loss computed when read (Candidate.trained), its t ratios and VIF measured when the pick asks
-    (FoldedRows.identification: on the fit and pick rows, or the fit rows alone); None when its expression
-    does not read back as its terms."""
+    (FoldedRows.identification: on the fit and pick rows, or the fit rows alone), its expression built when
+    read (most moves' never are); None when its expression would not read back as its terms (a term twice,
+    or a zero coefficient, which the sum leaves out)."""
     # from the prepared normal equations: a 58-term move on 11,850 rows 0.06 ms against lstsq's 10.7 ms (one
     # thread); seed 41's heavy closed loop's wx' solves 5,800 moves. Else lstsq, on unit-RMS columns: its
     # cutoff is relative to the largest singular value, and on the raw columns (RMS 0.16 to 6e11) it dropped
@@ -489,10 +505,11 @@ def move_candidate(shapes: list[sympy.Expr], cv_loss: float, folded: FoldedRows,
         a, y, _lag = folded.fit_part(shapes)
         size = column_scale(a)
         coef = np.linalg.lstsq(a / size, y, rcond=None)[0] / size
-    c = terms_candidate(shapes, coef, engine, ordered=True)  # read back without rebuilding the sum
-    back = term_shapes(c.expression)
-    if _key(back) != _key(shapes) or len(back) != len(shapes):
-        return None  # the expression would not read back as these terms (a zero coefficient)
+    # the read-back test without the expression: on seed 71's heavy closed loop's wx' it gave the same
+    # answer as reading back the built sum for all 3,981 moves (session 72)
+    if len(set(shapes)) != len(shapes) or np.any(coef == 0.0):
+        return None
+    c = terms_candidate(shapes, coef, engine, ordered=True, lazy=True)  # read back without rebuilding the sum
     c.complexity, c.holdout_loss = model_size(shapes), cv_loss
     c.train = functools.partial(_fit_rows_loss, folded, shapes, coef, kind)
     c.measure = lambda: folded.identification(shapes)

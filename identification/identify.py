@@ -53,7 +53,7 @@ from identification.collinearity import (
     terms_collinearity,
 )
 from identification.cross_validation import FoldedRows, attach_cross_validated, identify_on
-from identification.cv_polish import move_candidate, polish_by_cross_validation, thrust_twins
+from identification.cv_polish import move_candidate, new_shapes, polish_by_cross_validation, thrust_twins
 from identification.data_roles import DEFAULT_GAP_S, assign_roles
 from identification.dataset import Dataset
 from identification.engine import ENGINE_NAMES, EngineSettings, make_engine
@@ -567,7 +567,7 @@ def _search_space(candidates: list[Candidate], extra: list[sympy.Expr], parts: l
     measured)."""
     pool: dict[sympy.Expr, None] = {}
     for c in candidates:
-        pool.update(dict.fromkeys(term_shapes(c.expression)))
+        pool.update(dict.fromkeys(new_shapes(c, pool)))
     pool.update(dict.fromkeys(extra))
 
     def make(shapes: list[sympy.Expr]) -> Candidate | None:

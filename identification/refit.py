@@ -78,17 +78,20 @@ def refit_rows(chosen: Candidate, parts: Sequence[Rows], loss: str, irls_iterati
 
 
 def terms_candidate(shapes: Sequence[sympy.Expr], coef: np.ndarray, engine: str,
-                    ordered: bool = False) -> Candidate:
+                    ordered: bool = False, lazy: bool = False) -> Candidate:
     """The candidate sum of coef_k x shapes_k (terms in the primitive names or the 16 variables), its
     prediction from the terms' columns; complexity 0 and losses NaN for the caller to set. ordered: the
-    sum's terms in sympy's order (sparse_expression)."""
+    sum's terms in sympy's order (sparse_expression); lazy: its expression built when first read."""
     shapes = list(shapes)
-    expr = sparse_expression([Feature(f"t{k}", s, engine) for k, s in enumerate(shapes)], coef, ordered)
+
+    def build() -> sympy.Expr:
+        return sparse_expression([Feature(f"t{k}", s, engine) for k, s in enumerate(shapes)], coef, ordered)
 
     def predict(X_: np.ndarray, shapes: list[sympy.Expr] = shapes, coef: np.ndarray = coef) -> np.ndarray:
         return expression_columns(shapes, X_) @ coef
 
-    return Candidate(expr, 0, float("nan"), engine, predict=predict, linear=(tuple(shapes), coef))
+    return Candidate(None if lazy else build(), 0, float("nan"), engine, predict=predict,
+                     linear=(tuple(shapes), coef), build=build if lazy else None)
 
 
 def structure_test(shapes: Sequence[sympy.Expr], parts: Sequence[Rows],

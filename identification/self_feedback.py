@@ -144,7 +144,9 @@ def mark_self_feedback(candidates: Sequence[Candidate], X: np.ndarray, y: np.nda
              cached(X, ("self_feedback", target, -h), lambda: _moved(X, target, -h)), h)
     own = OWN_SYMBOL[target]
     for c in candidates:
-        if not c.expression.has(own):  # no term of its own state: no self-feedback
+        # no term of its own state: no self-feedback (a sum of terms read from its terms, its expression
+        # not built: the polish marks thousands of moves)
+        if not (any(s.has(own) for s in c.linear[0]) if c.linear is not None else c.expression.has(own)):
             c.self_feedback, c.self_feedback_se = 0.0, None
             continue
         c.self_feedback = slope(c, X, target, moved)

@@ -11,14 +11,17 @@ and speeds."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import identification.cv_polish as cv_polish
 from identification.body_frame import PRIMITIVE_SYMBOLS
 from identification.collinearity import term_shapes
-from identification.cv_polish import move_candidate, polish_by_cross_validation
+from identification.cv_polish import move_candidate, new_shapes, polish_by_cross_validation
 from identification.engine import EngineSettings
 from identification.pareto import admissible, pick_limit
+from identification.refit import terms_candidate
+from identification.self_feedback import mark_self_feedback
 from tests.test_cv_polish_beam import ONE, ROTORS, TRUTH, VB, WX, _rows
 
 S = PRIMITIVE_SYMBOLS
@@ -82,3 +85,30 @@ def test_with_every_tolerated_move_kept_only_moves_above_the_tolerance_are_left_
     assert left_out and all(c.holdout_loss > limit for c in left_out)
     within = {frozenset(term_shapes(c.expression)) for c in every if c.holdout_loss <= limit}
     assert within <= kept  # every move within the final tolerance joined
+
+
+
+def test_a_moves_expression_is_built_when_read_and_is_the_fitted_sum():
+    """The polish fits thousands of moves and reads a few expressions (the pick's, its ties', the front's):
+    a move's expression is built when first read, the sum of its fitted terms in sympy's order, and marking
+    its self-feedback reads its terms, not the expression. A move whose sum would leave a term out (a zero
+    coefficient) is none, as before."""
+    rows = _rows(0)
+    X = rows.parts[0][0]  # the fit rows' 16 variables
+    c = move_candidate(TRUTH, rows.terms_loss(TRUTH, "absolute"), rows, "absolute", "discovery")
+    assert c is not None and c.build is not None  # not built yet
+    mark_self_feedback([c], X, np.zeros(len(X)), "dwy")  # no term in wy: none, read from its terms
+    assert c.self_feedback == 0.0 and c.build is not None
+    coef = c.linear[1]
+    eager = terms_candidate(TRUTH, coef, "discovery", ordered=True)
+    assert c.expression == eager.expression and c.build is None
+    assert set(term_shapes(c.expression)) == set(TRUTH)
+    np.testing.assert_allclose(c.evaluate(X), eager.evaluate(X), rtol=1e-12)
+    # a later polish reads its terms without building it where at most one is new to its pool, and in the
+    # order its expression writes them where more are
+    d = move_candidate(TRUTH, rows.terms_loss(TRUTH, "absolute"), rows, "absolute", "discovery")
+    assert new_shapes(d, {TRUTH[0], TRUTH[2]}) == [TRUTH[1]] and d.build is not None
+    assert new_shapes(d, set()) == term_shapes(eager.expression) and d.build is None
+    with pytest.MonkeyPatch.context() as m:  # a zero coefficient: its sum would not read back
+        m.setattr(rows, "fit_coefficients", lambda s: np.array([coef[0], 0.0, coef[2]]))
+        assert move_candidate(TRUTH, 1.0, rows, "absolute", "discovery") is None
