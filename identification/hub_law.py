@@ -282,44 +282,10 @@ class HubColumns:
         """The derivative (N', 12) of the law sum_ik thrust_ik u_i^2/H_i^k + airspeed_ik s_i/H_i^k with
         respect to each offset (rotor-major x, y, z; per m), the weights (4, powers) held, taken through the
         same steps as the columns: dH_i/dr_i = -g, and s_i's slope from v_b + w x r_i. With a denominator
-        (d1, d2) every part is over D_i = 1 - d1/H_i - d2/H_i^2, and two more columns are the slopes in d1
-        and d2 (N', 14)."""
-        if denominator is not None:
-            return self._rational_slopes(offsets, thrust, airspeed, np.asarray(denominator, float))
-        r = np.asarray(offsets, float).reshape(4, 3)
-        x = self.inputs
-        g = gravity_directions(x)
-        H = hub_heights(x, r)
-        powers = range(1, self.powers + 1)
-        parts = []
-        with np.errstate(all="ignore"):
-            H = np.where(H > 0.0, H, 0.0)
-            for i in range(4):
-                inverse = [H[:, i] ** -k for k in range(1, self.powers + 2)]  # 1/H^1 .. 1/H^(K+1)
-                # d(1/H^k)/dr_ij = k g_j / H^(k+1)
-                height = self.u2[i] * sum(thrust[i, k - 1] * k * inverse[k] for k in powers)
-                shift = np.zeros((len(x), 3))
-                if airspeed is not None and self.airspeed:
-                    ub, vb, wx, wy, wz = (x[:, j] for j in range(7, 12))
-                    vx = ub + wy * r[i, 2] - wz * r[i, 1]
-                    vy = vb + wz * r[i, 0] - wx * r[i, 2]
-                    s = vx * vx + vy * vy
-                    height = height + s * sum(airspeed[i, k - 1] * k * inverse[k] for k in powers)
-                    level = sum(airspeed[i, k - 1] * inverse[k - 1] for k in powers)
-                    # ds_i/dr_i from v_hub = v_b + w x r_i (its body x-y part)
-                    ds = np.column_stack([2 * vy * wz, -2 * vx * wz, 2 * (vx * wy - vy * wx)])
-                    shift = ds * level[:, None]
-                parts.append(height[:, None] * g + shift)
-            A = np.hstack(parts)
-            for step in self.steps:
-                A = step(A)
-        return A
-
-    def _rational_slopes(self, offsets: np.ndarray, thrust: np.ndarray, airspeed: np.ndarray | None,
-                         d: np.ndarray) -> np.ndarray:
-        """slopes with a denominator: g_k(H) = H^-k / D(H) in place of H^-k, so
-        -dg_k/dH = k H^-(k+1) / D + H^-k D'(H) / D^2 with D' = d1/H^2 + 2 d2/H^3, and
-        dg_k/dd_j = H^-k H^-j / D^2 (N', 14: the twelve offsets, then d1 and d2)."""
+        (d1, d2) every part is over D_i = 1 - d1/H_i - d2/H_i^2: g_k(H) = H^-k / D in place of H^-k, so
+        -dg_k/dH = k H^-(k+1) / D + H^-k D'(H) / D^2 with D' = d1/H^2 + 2 d2/H^3, and two more columns are
+        the slopes in d1 and d2, dg_k/dd_j = H^-k H^-j / D^2 (N', 14)."""
+        d = None if denominator is None else np.asarray(denominator, float)
         r = np.asarray(offsets, float).reshape(4, 3)
         x = self.inputs
         g = gravity_directions(x)
@@ -329,28 +295,39 @@ class HubColumns:
         with np.errstate(all="ignore"):
             H = np.where(H > 0.0, H, 0.0)
             for i in range(4):
-                inverse = [H[:, i] ** -k for k in range(0, self.powers + 2)]  # 1/H^0 .. 1/H^(K+1)
-                D = 1.0 - d[0] * inverse[1] - d[1] * inverse[2]
-                D = np.where(D > MIN_DENOMINATOR, D, np.inf)  # no slope where the columns are no law's
-                Dp = d[0] * inverse[2] + 2.0 * d[1] * inverse[3]
-                falls = [k * inverse[k + 1] / D + inverse[k] * Dp / D**2 for k in powers]  # -dg_k/dH
-                level_u = sum(thrust[i, k - 1] * inverse[k] for k in powers)  # sum_k b_k H^-k
-                height = self.u2[i] * sum(thrust[i, k - 1] * falls[k - 1] for k in powers)
+                # 1/H^0 .. 1/H^(K+1), and to 1/H^3 for the denominator's slope D'
+                inverse = [H[:, i] ** -k for k in range(0, max(self.powers + 2, 4))]
+                if d is None:  # -d(1/H^k)/dH = k / H^(k+1)
+                    def fall(w: np.ndarray, inverse: list = inverse) -> np.ndarray:
+                        return sum(w[k - 1] * k * inverse[k + 1] for k in powers)
+                    over = 1.0
+                else:
+                    D = 1.0 - d[0] * inverse[1] - d[1] * inverse[2]
+                    D = np.where(D > MIN_DENOMINATOR, D, np.inf)  # no slope where the columns are no law's
+                    Dp = d[0] * inverse[2] + 2.0 * d[1] * inverse[3]
+                    falls = [k * inverse[k + 1] / D + inverse[k] * Dp / D**2 for k in powers]
+
+                    def fall(w: np.ndarray, falls: list = falls) -> np.ndarray:
+                        return sum(w[k - 1] * falls[k - 1] for k in powers)
+                    over = D
+                height = self.u2[i] * fall(thrust[i])
+                law = self.u2[i] * sum(thrust[i, k - 1] * inverse[k] for k in powers)  # D_i times the law
                 shift = np.zeros((len(x), 3))
-                law = self.u2[i] * level_u
                 if airspeed is not None and self.airspeed:
                     ub, vb, wx, wy, wz = (x[:, j] for j in range(7, 12))
                     vx = ub + wy * r[i, 2] - wz * r[i, 1]
                     vy = vb + wz * r[i, 0] - wx * r[i, 2]
                     s = vx * vx + vy * vy
-                    height = height + s * sum(airspeed[i, k - 1] * falls[k - 1] for k in powers)
+                    height = height + s * fall(airspeed[i])
                     level = sum(airspeed[i, k - 1] * inverse[k] for k in powers)
+                    # ds_i/dr_i from v_hub = v_b + w x r_i (its body x-y part)
                     ds = np.column_stack([2 * vy * wz, -2 * vx * wz, 2 * (vx * wy - vy * wx)])
-                    shift = ds * (level / D)[:, None]
+                    shift = ds * (level / over)[:, None]
                     law = law + s * level
                 parts.append(height[:, None] * g + shift)
-                by_d += (law / D**2)[:, None] * np.column_stack([inverse[1], inverse[2]])
-            A = np.hstack([*parts, by_d])
+                if d is not None:
+                    by_d += (law / D**2)[:, None] * np.column_stack([inverse[1], inverse[2]])
+            A = np.hstack(parts if d is None else [*parts, by_d])
             for step in self.steps:
                 A = step(A)
         return A

@@ -115,6 +115,21 @@ def test_the_laws_slope_in_its_offsets_is_its_columns_difference(airspeed, ratio
     np.testing.assert_allclose(slopes, numeric, atol=1e-6 * np.abs(numeric).max())
 
 
+def test_a_one_power_law_over_a_denominator_has_its_slopes():
+    """hub_law_powers 1 with the rational stage: the denominator's slope reads 1/H^3, beyond the series'
+    powers (it raised an IndexError before); the slopes are the columns' central differences."""
+    P = primitive_matrix(_rows(300, 6), HUB_PRIMITIVES)
+    table = HubColumns(P, 1, True)
+    r, d = np.asarray(GROUND_VEHICLE.rotor_arms).ravel(), np.array([0.003, 0.004])
+    rng = np.random.default_rng(7)
+    thrust, air = rng.normal(size=(4, 1)) * 1e-6, rng.normal(size=(4, 1)) * 1e-3
+    b, p, step = np.concatenate([thrust.ravel(), air.ravel()]), np.concatenate([r, d]), 1e-6
+    numeric = np.column_stack([(table.columns((p + step * e)[:12], (p + step * e)[12:])
+                                - table.columns((p - step * e)[:12], (p - step * e)[12:])) @ b / (2 * step)
+                               for e in np.eye(14)])
+    np.testing.assert_allclose(table.slopes(r, thrust, air, d), numeric, atol=1e-6 * np.abs(numeric).max())
+
+
 @pytest.mark.parametrize("target", ["fz", "dwy"])
 def test_a_law_with_a_pole_is_found_exactly_over_a_denominator(target):
     """The SITL's ground law (Cheeseman-Bennett, T/T_inf = 1/(1 - (R/4H)^2)) is no finite series in 1/H:
