@@ -40,9 +40,9 @@ def _libc() -> ctypes.CDLL | None:
     return libc if hasattr(libc, "mallopt") and hasattr(libc, "malloc_trim") else None
 
 
-def _set(libc: ctypes.CDLL, settings: dict[int, int]) -> bool:
-    """mallopt each (parameter, value); True when glibc took every one."""
-    return all(libc.mallopt(ctypes.c_int(p), ctypes.c_int(v)) for p, v in settings.items())
+def _set(libc: ctypes.CDLL, settings: dict[int, int]) -> list[bool]:
+    """mallopt each (parameter, value), every one tried; whether glibc took each."""
+    return [bool(libc.mallopt(ctypes.c_int(p), ctypes.c_int(v))) for p, v in settings.items()]
 
 
 @contextlib.contextmanager
@@ -50,12 +50,13 @@ def reused_heap() -> Iterator[bool]:
     """Keep freed C heap memory for reuse inside the block (module docstring); yields whether it could
     (False off glibc, where nothing changes). Processes forked inside the block inherit the setting."""
     libc = _libc()
-    kept = libc is not None and _set(libc, {M_MMAP_THRESHOLD: KEPT_MMAP_THRESHOLD,
-                                            M_TRIM_THRESHOLD: KEPT_TRIM_THRESHOLD, M_TOP_PAD: KEPT_TOP_PAD})
+    took = [] if libc is None else _set(libc, {M_MMAP_THRESHOLD: KEPT_MMAP_THRESHOLD,
+                                               M_TRIM_THRESHOLD: KEPT_TRIM_THRESHOLD,
+                                               M_TOP_PAD: KEPT_TOP_PAD})
     try:
-        yield kept
+        yield bool(took) and all(took)
     finally:
-        if kept:
+        if any(took):
             # glibc's defaults (its threshold no longer rises by itself once set: 128 KiB as at start)
             _set(libc, {M_MMAP_THRESHOLD: DEFAULT, M_TRIM_THRESHOLD: DEFAULT, M_TOP_PAD: DEFAULT})
             libc.malloc_trim(ctypes.c_size_t(0))
