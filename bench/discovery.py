@@ -5,7 +5,8 @@ Cases (CASES below): synthetic flights generated in-process from written-down ph
 flights FLOWN IN THE SITL (separate `quadsr sitl` processes, real UDP MAVLink) with a vehicle file: the
 paper's vehicle, `fang-chen-aero` (every effect on), each effect alone on the paper's vehicle, a wide
 PX4-Iris-like frame with a CG offset, a heavy vehicle, and the heavy vehicle with every effect, a CG offset
-and a weak rotor, open loop and closed loop (bench/vehicles/, each number's source in the file).
+and a weak rotor, and a 5-inch racer on a dead-cat frame with every effect, a CG offset and a weak rotor, each
+open loop and closed loop (bench/vehicles/, each number's source in the file).
 SITL cases fly the paper's open-loop flights (paper-train for training, paper-validate for validation, from
 200 m with no ground), except ground effect, which needs the ground: a stabilised low hover with PRBS on
 the motors (bench/profiles/near-ground.yaml), validated on a second flight of it with another seed. Ideal
@@ -195,6 +196,9 @@ CASES: tuple[Case, ...] = (
     # the heavy vehicle with every effect, a CG offset and a weak rotor (session 63: a vehicle the engine was
     # not tuned on), open loop and in closed loop from the ground (its ground effect too)
     Case("sitl heavy vehicle with every effect", sitl_vehicle="heavy-650-aero"),
+    # a 5-inch racer on a dead-cat frame with every effect, a CG offset and a weak rotor (session 74: a third
+    # airframe the engine was not tuned on), open loop and in closed loop from the ground
+    Case("sitl racer with every effect", sitl_vehicle="racer-250-aero"),
     # closed loop from the ground: the closed-loop profile (hover stabiliser on a 2 m Lissajous path with a
     # turning heading, per-motor PRBS); the controller ties rotor speeds to angles and rates, so the
     # regressors are collinear and the engine must still return the physics' terms
@@ -203,6 +207,8 @@ CASES: tuple[Case, ...] = (
     Case("sitl closed loop fang-chen-aero", sitl_vehicle="fang-chen-aero", open_loop=False,
          profiles=("closed-loop", "closed-loop")),
     Case("sitl closed loop heavy vehicle with every effect", sitl_vehicle="heavy-650-aero", open_loop=False,
+         profiles=("closed-loop", "closed-loop")),
+    Case("sitl closed loop racer with every effect", sitl_vehicle="racer-250-aero", open_loop=False,
          profiles=("closed-loop", "closed-loop")),
     # realistic sensors, targets from the IMU: ours is scored in the weak form (quadsr identify's default on
     # sensor targets) as `discovery-weak`, beside the point Savitzky-Golay targets
