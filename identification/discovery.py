@@ -161,6 +161,14 @@ class DiscoveryEngine:
     ):
         self.settings = settings or DiscoverySettings()
         self.selection = selection or SelectionSettings()  # the final pick's rules (the polish keeps them)
+        # the residual's model between rounds: this engine's pick, its tolerances as the user set them (a
+        # module-level copy of the defaults ignored selection.abs_tol until session 75), without its
+        # identification rules (t ratio, VIF). A round's models are incomplete: their residual is the physics
+        # still to find, smooth, so its effective sample size is tens of rows and every t ratio is small;
+        # which few pass is chance (with t ratios on a robust scale, 2 of the first round's 42 candidates of
+        # fang-chen-aero's dwx passed and the screening stayed on a 2-term model, R^2 0.989); the rules are
+        # for the final pick (identify), which sees every round's candidates.
+        self.round_selection = dataclasses.replace(self.selection, min_t=0.0, max_vif=float("inf"))
         check_settings(self.settings)
         # no simpler-term swaps: over a grown pool they multiply the candidates for little gain
         self.sparse = dataclasses.replace(
@@ -374,7 +382,7 @@ class DiscoveryEngine:
                 addable=None if start_at is None else ~heights[ids])
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
-            previous, best = best, select(candidates, _SELECTION, scale=scale)
+            previous, best = best, select(candidates, self.round_selection, scale=scale)
             residual = y - (best.evaluate(X) if weak is None else weak @ best.evaluate(X))
             if loss == "absolute":  # the few rows with large target errors do not choose the terms
                 weights = huber_weights(residual)
@@ -1153,13 +1161,6 @@ def _rows_key(X: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(X).tobytes()).hexdigest()
 
 
-# the residual's model between rounds: identify's held-out pick without its identification rules (t ratio,
-# VIF). A round's models are incomplete: their residual is the physics still to find, smooth, so its
-# effective sample size is tens of rows and every t ratio is small; which few pass is chance (with t ratios
-# on a robust scale, 2 of the first round's 42 candidates of fang-chen-aero's dwx passed and the screening
-# stayed on a 2-term model, R^2 0.989); the rules are for the final pick (identify), which sees every
-# round's candidates.
-_SELECTION = dataclasses.replace(SelectionSettings(), min_t=0.0, max_vif=float("inf"))
 _KEEP = 3  # candidates kept per model size (number of terms): the best by training residual
 
 
