@@ -90,6 +90,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import resource
 import sys
 import time
@@ -253,6 +254,16 @@ def vehicle_file(name: str) -> Path | None:
     return None
 
 
+def flight_name(vehicle: str) -> str:
+    """What a vehicle's flights are filed under in --out: a bundled vehicle's name, or a vehicle file's stem
+    and a digest of its content (a path would put the flights beside the file; two files of one name, or one
+    file edited, do not share flights with --reuse-flights)."""
+    p = Path(vehicle)
+    if p.suffix != ".yaml":
+        return vehicle
+    return f"{p.stem}-{hashlib.sha256(p.read_bytes()).hexdigest()[:8]}"
+
+
 def flown_vehicle(case: Case):  # -> VehicleConfig
     """The vehicle as the SITL flies it (open loop: no ground, so no ground effect in its physics)."""
     from bridge.vehicle import load_vehicle
@@ -276,7 +287,8 @@ def sitl_flights(case: Case, out: Path, seed: int, duration: float, gravity: flo
     logs, tlogs = [], []
     for profile, dur, s, role in flights:
         # the profile in the name: two cases of one vehicle (paper flights, closed loop) share an --out folder
-        name = f"{case.sitl_vehicle}-{Path(str(profile)).stem}-{case.sensors}-{role}-{dur or 0:g}s-seed{s}"
+        name = (f"{flight_name(case.sitl_vehicle or '')}-{Path(str(profile)).stem}-{case.sensors}-{role}-"
+                f"{dur or 0:g}s-seed{s}")
         tlog = out / f"{name}.tlog"
         tlogs.append(tlog)
         if reuse and tlog.exists() and tlog.stat().st_size > 0:
