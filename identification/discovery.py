@@ -161,14 +161,6 @@ class DiscoveryEngine:
     ):
         self.settings = settings or DiscoverySettings()
         self.selection = selection or SelectionSettings()  # the final pick's rules (the polish keeps them)
-        # the residual's model between rounds: this engine's pick, its tolerances as the user set them (a
-        # module-level copy of the defaults ignored selection.abs_tol until session 75), without its
-        # identification rules (t ratio, VIF). A round's models are incomplete: their residual is the physics
-        # still to find, smooth, so its effective sample size is tens of rows and every t ratio is small;
-        # which few pass is chance (with t ratios on a robust scale, 2 of the first round's 42 candidates of
-        # fang-chen-aero's dwx passed and the screening stayed on a 2-term model, R^2 0.989); the rules are
-        # for the final pick (identify), which sees every round's candidates.
-        self.round_selection = dataclasses.replace(self.selection, min_t=0.0, max_vif=float("inf"))
         check_settings(self.settings)
         # no simpler-term swaps: over a grown pool they multiply the candidates for little gain
         self.sparse = dataclasses.replace(
@@ -204,6 +196,18 @@ class DiscoveryEngine:
         if s.rungs >= 2 and "mul" in s.operators:
             grow_products(space, unary, unary, 2)
         return space
+
+    @property
+    def round_selection(self) -> SelectionSettings:
+        """The pick between rounds (whose residual the next round screens against): this engine's selection,
+        its tolerances as the user set them, without its identification rules (t ratio, VIF).
+
+        A round's models are incomplete: their residual is the physics still to find, smooth, so its
+        effective sample size is tens of rows and every t ratio is small; which few pass is chance (with t
+        ratios on a robust scale, 2 of the first round's 42 candidates of fang-chen-aero's dwx passed and the
+        screening stayed on a 2-term model, R^2 0.989); the rules are for the final pick (identify), which
+        sees every round's candidates."""
+        return dataclasses.replace(self.selection, min_t=0.0, max_vif=float("inf"))
 
     def fit(
         self,
