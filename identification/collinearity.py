@@ -408,11 +408,18 @@ def _centred_t_ratios(x: np.ndarray, y: np.ndarray, max_lag: int | None,
     deviation, std = centred if centred is not None else (x - x.mean(axis=0), x.std(axis=0))
     z = deviation / std
     yc = y - y.mean()
-    k = z.shape[1]
     r = np.linalg.qr(np.hstack([z, yc[:, None]]), mode="r")
+    return _t_ratios_from_factor(r, z, yc, max_lag)
+
+
+def _t_ratios_from_factor(r: np.ndarray, z: np.ndarray, yc: np.ndarray, max_lag: int | None
+                          ) -> tuple[np.ndarray, np.ndarray] | None:
+    """_centred_t_ratios from the triangular factor r (k+1, k+1) of [z | yc], z (N,k) the centred columns
+    at unit spread and yc (N,) the centred target."""
+    k = z.shape[1]
     with np.errstate(all="ignore"):
         rinv = scipy.linalg.solve_triangular(r[:k, :k], np.eye(k), check_finite=False)
-        vif = len(y) * np.sum(rinv * rinv, axis=1)
+        vif = len(yc) * np.sum(rinv * rinv, axis=1)
     if not np.all(np.isfinite(vif)) or vif.max() > _CENTRED_MAX_VIF:
         return None
     coef = rinv @ r[:k, k]
@@ -424,6 +431,94 @@ def _centred_t_ratios(x: np.ndarray, y: np.ndarray, max_lag: int | None,
     se = s * np.sqrt(vif) / np.sqrt(effective_rows(resid, max_lag))
     with np.errstate(all="ignore"):
         return np.nan_to_num(c / se, nan=0.0), vif
+
+
+class CentredPool:
+    """term_identification of subsets of a growing set of columns on the same rows, from one thin QR
+    factorisation [yc | Z] = QR kept up to date as columns join (Z the columns centred at unit spread, yc
+    the centred target): a subset's factor is that of R's columns for it (its (m+1) rows, not N), the same
+    least squares as factorising the subset's own columns. cv_polish measures ~1,000 moves of one pool per
+    target, each factorised on its own before: a tenth of a racer's closed-loop wx'."""
+
+    def __init__(self, y: np.ndarray, max_lag: int | None = None):
+        """y (N,) finite: the target on the rows; max_lag as term_identification's."""
+        self.rows = len(y)
+        self.max_lag = max_lag
+        self.yc = np.asarray(y, dtype=float) - float(np.mean(y))
+        self._z = np.zeros((self.rows, 0), order="F")  # the columns centred at unit spread
+        self._q = np.zeros((self.rows, 0), order="F")  # orthonormal basis of [yc | Z]
+        self._r = np.zeros((0, 0))  # [yc | Z] = Q R (R's columns: yc, then Z's), in a buffer with room
+        self._columns = 0  # columns of R held
+        self._size = 0  # columns of Z held (of the buffers' capacity)
+        self._rank = 0  # columns of Q held (rows of R)
+        self._varying = np.zeros(0, bool)
+        self._append(self.yc)
+
+    def add(self, columns: np.ndarray) -> range:
+        """Columns (N,e) joined (finite); their indices for identification()."""
+        a = np.asarray(columns, dtype=float).reshape(self.rows, -1)
+        first = self._size
+        for j in range(a.shape[1]):
+            col = a[:, j]
+            deviation = col - col.mean()
+            std = float(np.sqrt(np.add.reduce(deviation * deviation) / max(self.rows, 1)))
+            varying = std > 1e-12 * max(float(np.max(np.abs(col))) if self.rows else 0.0, 1e-300)
+            self._varying = np.append(self._varying, varying)
+            z = deviation / std if varying else deviation
+            self._z = _grown(self._z, self._size + 1)
+            self._z[:, self._size] = z
+            self._size += 1
+            self._append(z)
+        return range(first, self._size)
+
+    def _append(self, z: np.ndarray) -> None:
+        """One column into [yc | Z] = QR: Gram-Schmidt against Q twice ("twice is enough"); a column within
+        1e-10 of Q's span joins R without a new direction of Q (its remainder's effect on any Gram matrix
+        entry is below 1e-20 of the column's square norm)."""
+        q = self._q[:, :self._rank]
+        c = q.T @ z
+        b = z - q @ c
+        c2 = q.T @ b
+        b -= q @ c2
+        c += c2
+        norm = float(np.linalg.norm(b))
+        n = self._columns + 1
+        if n > self._r.shape[1]:
+            grown = np.zeros((max(2 * n, 16), max(2 * n, 16)))
+            grown[:self._r.shape[0], :self._r.shape[1]] = self._r
+            self._r = grown
+        self._r[:self._rank, n - 1] = c
+        if norm > 1e-10 * max(float(np.linalg.norm(z)), 1e-300):
+            self._q = _grown(self._q, self._rank + 1)
+            self._q[:, self._rank] = b / norm
+            self._r[self._rank, n - 1] = norm
+            self._rank += 1
+        self._columns = n
+
+    def identification(self, idx: Sequence[int]) -> tuple[float, float] | None:
+        """term_identification's (weakest t, largest VIF) of the columns idx (add's indices); None where its
+        centred path would not answer (a column that does not vary, too few rows, a VIF above
+        _CENTRED_MAX_VIF): the caller measures those columns themselves."""
+        idx = list(idx)
+        if not idx or not self._varying[idx].all() or self.rows <= len(idx) + 1:
+            return None
+        r = np.linalg.qr(self._r[:max(self._rank, 1), [*(i + 1 for i in idx), 0]], mode="r")
+        if r.shape[0] < len(idx) + 1:  # fewer directions than columns (an exact fit, tied columns): R
+            r = np.vstack([r, np.zeros((len(idx) + 1 - r.shape[0], r.shape[1]))])  # padded, R^T R the same
+        out = _t_ratios_from_factor(r, self._z[:, idx], self.yc, self.max_lag)
+        if out is None:
+            return None
+        t, vif = out
+        return float(t.min()), float(vif.max())
+
+
+def _grown(buffer: np.ndarray, columns: int) -> np.ndarray:
+    """buffer (N, capacity) column-major with room for `columns` columns (doubled when full)."""
+    if columns <= buffer.shape[1]:
+        return buffer
+    out = np.zeros((buffer.shape[0], max(2 * buffer.shape[1], columns, 16)), order="F")
+    out[:, :buffer.shape[1]] = buffer
+    return out
 
 
 def offset_t_ratio(

@@ -26,7 +26,7 @@ from scipy import sparse
 
 from identification.body_frame import expression_columns
 from identification.candidate import Candidate
-from identification.collinearity import term_identification, term_shapes
+from identification.collinearity import CentredPool, term_identification, term_shapes
 from identification.metrics import loss as loss_fn
 from identification.sparse import single_threaded_blas
 from identification.weak_noise import Whitener
@@ -84,6 +84,8 @@ class FoldedRows:
         self._index: dict[sympy.Expr, int] = {}  # prepare(): a term's column in the prepared Gram matrices
         self._offered: set[sympy.Expr] = set()  # every term prepare() was given (a non-finite one: no column)
         self._pool: _FoldEquations | None = None
+        self._centred: CentredPool | None = None  # every term measured, on identification()'s rows
+        self._centred_index: dict[sympy.Expr, int] = {}  # a term's column in _centred
         # identification() per term list: the engine's candidates are measured there, then re-aimed
         # (identify_on) and asked again by the pick
         self._identified: dict[tuple[sympy.Expr, ...], tuple[float, float]] = {}
@@ -117,6 +119,8 @@ class FoldedRows:
         if not shapes:
             return float("inf"), 1.0  # no term to measure (as term_identification for no varying term)
         key = tuple(shapes)
+        if key not in self._identified and (pooled := self._pooled_identification(shapes)) is not None:
+            self._identified[key] = pooled
         if key not in self._identified:
             if self.identify_on_all:
                 a, y = np.column_stack([self.column(s) for s in shapes]), self.y
@@ -126,6 +130,25 @@ class FoldedRows:
                 a, y, lag = self.fit_part(shapes)
                 self._identified[key] = term_identification(a, y, lag, self.fit_noise)
         return self._identified[key]
+
+    def _pooled_identification(self, shapes: Sequence[sympy.Expr]) -> tuple[float, float] | None:
+        """identification() on rows without stated noise from one QR factorisation of every term measured
+        so far (collinearity.CentredPool), the terms not in it joined first; None where that does not
+        answer (a term not finite there)."""
+        if (self.all_noise if self.identify_on_all else self.fit_noise) is not None or not len(self.y):
+            return None
+        rows = slice(None) if self.identify_on_all else slice(0, self._first)
+        if self._centred is None:
+            lag = None if not self.parts or self.parts[0][2] is None else self.parts[0][3]
+            self._centred = CentredPool(self.y[rows], lag)
+        new = [s for s in dict.fromkeys(shapes) if s not in self._centred_index]
+        cols = [self.column(s)[rows] for s in new]
+        if not all(np.all(np.isfinite(c)) for c in cols):
+            return None
+        if new:
+            at = self._centred.add(np.column_stack(cols))
+            self._centred_index.update(zip(new, at, strict=True))
+        return self._centred.identification([self._centred_index[s] for s in shapes])
 
     def prepare(self, shapes: Sequence[sympy.Expr]) -> None:
         """Precompute the Gram matrices of these terms (finite ones) over all rows and over each fold's
@@ -231,11 +254,22 @@ class _FoldEquations:
         self.a = a / size
         self.y = y
         self.gram, self.rhs = self.a.T @ self.a, self.a.T @ y
-        fit = self.a[:first]
-        self.fit_gram, self.fit_rhs = fit.T @ fit, fit.T @ y[:first]
+        self._first = first
         self.dropped_gram = [self.a[d].T @ self.a[d] for d in dropped]
         self.dropped_rhs = [self.a[d].T @ y[d] for d in dropped]
         self.held = list(held)
+
+    @functools.cached_property
+    def fit_gram(self) -> np.ndarray:
+        """The normal matrix over the fit rows (made when first asked for: a candidate scored on its own
+        columns never asks)."""
+        fit = self.a[:self._first]
+        return fit.T @ fit
+
+    @functools.cached_property
+    def fit_rhs(self) -> np.ndarray:
+        """The right-hand side over the fit rows."""
+        return self.a[:self._first].T @ self.y[:self._first]
 
     @functools.cached_property
     def held_a(self) -> list[np.ndarray]:
