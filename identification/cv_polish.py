@@ -119,7 +119,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             for c in candidates}
     distinct: dict[bytes, sympy.Expr] = {}  # one term per column of values: twins only make ties
     for s in [*term_shapes(chosen.expression), *pool]:
-        distinct.setdefault(folded.column(s).tobytes(), s)
+        distinct.setdefault(_values_up_to_sign(folded.column(s)), s)
     pool = {s: s for s in distinct.values()}
     folded.prepare(list(pool.values()))
     scale = folded.scale
@@ -169,6 +169,16 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
         if key_now in expanded and not frontier[:beam]:
             return chosen
     return chosen
+
+
+def _values_up_to_sign(column: np.ndarray) -> bytes:
+    """A term's values (M,) as bytes, negated when its first nonzero value is negative: a term and its
+    negation (u1^2 - u2^2 beside u2^2 - u1^2, as two candidates wrote one rotor pattern) are one column to
+    a linear model, and their moves tie exactly, so that rounding chose which of two equal moves was taken
+    (closed-loop racer, seed 97: the polish's path turned there)."""
+    nonzero = np.flatnonzero(column)
+    flipped = nonzero.size > 0 and column[nonzero[0]] < 0
+    return ((0.0 - column if flipped else column) + 0.0).tobytes()  # + 0.0: no -0.0 entries
 
 
 def new_shapes(c: Candidate, known: Container[sympy.Expr]) -> list[sympy.Expr]:

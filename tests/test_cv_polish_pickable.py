@@ -15,13 +15,15 @@ import numpy as np
 import pytest
 
 import identification.cv_polish as cv_polish
-from identification.body_frame import PRIMITIVE_SYMBOLS
+from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
 from identification.collinearity import term_shapes
+from identification.cross_validation import FoldedRows
 from identification.cv_polish import move_candidate, new_shapes, polish_by_cross_validation
 from identification.engine import EngineSettings
 from identification.pareto import admissible, pick_limit
 from identification.refit import terms_candidate
 from identification.self_feedback import mark_self_feedback
+from identification.true_model import random_states
 from tests.test_cv_polish_beam import ONE, ROTORS, TRUTH, VB, WX, _rows
 
 S = PRIMITIVE_SYMBOLS
@@ -112,3 +114,38 @@ def test_a_moves_expression_is_built_when_read_and_is_the_fitted_sum():
     with pytest.MonkeyPatch.context() as m:  # a zero coefficient: its sum would not read back
         m.setattr(rows, "fit_coefficients", lambda s: np.array([coef[0], 0.0, coef[2]]))
         assert move_candidate(TRUTH, 1.0, rows, "absolute", "discovery") is None
+
+
+def test_a_terms_negation_offered_by_another_candidate_adds_no_move():
+    """u1^2 - u2^2 and u2^2 - u1^2 are one column to a linear model: every move with one ties exactly with the
+    same move with the other, so which was taken was left to rounding. The polish's pool holds one of them:
+    the moves fitted and the pick are those of the polish without the negation offered."""
+    twin = ROTORS[0] ** 2 - ROTORS[1] ** 2
+    assert -twin != twin  # two shapes to sympy
+    xi, _ = random_states(6000, 3)
+    rng = np.random.default_rng(3)
+    X = np.hstack([xi, 500.0 + 100.0 * rng.standard_normal((6000, 4))])
+    y = expression_columns([*TRUTH, twin], X) @ np.array([0.3, 2e-3, -0.4, 2e-6])
+    y = y + 0.002 * float(np.std(y)) * rng.standard_normal(len(y))
+    rows = FoldedRows([(X[:4800], y[:4800], None, 3), (X[4800:], y[4800:], None, 3)], folds=5)
+    selection = EngineSettings().selection
+
+    def terms(c) -> frozenset:
+        """A model's terms as the polish chose them (a sum of rotor speeds is one term)."""
+        return frozenset(c.linear[0] if c.linear is not None else term_shapes(c.expression))
+
+    def polish(offered: list) -> tuple[set, frozenset]:
+        start = TRUTH  # the rotor difference missing: the moves that add it are fitted
+        picked = move_candidate(start, rows.terms_loss(start, "absolute"), rows, "absolute", "discovery")
+        candidates = [picked] + [move_candidate(s, rows.terms_loss(s, "absolute"), rows, "absolute", "t")
+                                 for s in offered]
+        first = len(candidates)
+        final = polish_by_cross_validation(picked, candidates, rows, "absolute", selection, lambda new: None,
+                                           rounds=selection.cv_polish_rounds, beam=selection.cv_polish_beam)
+        return {terms(c) for c in candidates[first:]}, terms(final)
+
+    without, pick = polish([[ONE, VB, twin]])
+    assert pick == frozenset([*TRUTH, twin])
+    with_negation, pick_negation = polish([[ONE, VB, twin], [ONE, -twin]])
+    assert not any(-twin in m for m in with_negation)
+    assert with_negation == without and pick_negation == pick
