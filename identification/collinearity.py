@@ -472,9 +472,10 @@ class CentredPool:
         return range(first, self._size)
 
     def _append(self, z: np.ndarray) -> None:
-        """One column into [yc | Z] = QR: Gram-Schmidt against Q twice ("twice is enough"); a column within
-        1e-10 of Q's span joins R without a new direction of Q (its remainder's effect on any Gram matrix
-        entry is below 1e-20 of the column's square norm)."""
+        """One column into [yc | Z] = QR: Gram-Schmidt against Q twice ("twice is enough"). A column within
+        1e-10 of its norm of Q's span joins R without a new direction of Q: its remainder is left out, which
+        moves its Gram matrix entries by at most 1e-10 of the columns' norms' product; any set that holds
+        it and what it nearly is then has a VIF far above _CENTRED_MAX_VIF and goes to the caller."""
         q = self._q[:, :self._rank]
         c = q.T @ z
         b = z - q @ c
