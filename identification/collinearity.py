@@ -31,6 +31,7 @@ import numpy as np
 import scipy.linalg
 import sympy
 
+from identification.column_buffer import ColumnBuffer
 from identification.model_file import SYMBOLS, VARIABLE_NAMES, expression_to_string
 from identification.sparse import ADD_ORDER
 from identification.weak_noise import Whitener, column_scale, estimate_covariance
@@ -433,6 +434,9 @@ def _t_ratios_from_factor(r: np.ndarray, z: np.ndarray, yc: np.ndarray, max_lag:
         return np.nan_to_num(c / se, nan=0.0), vif
 
 
+_ROOM = 64  # CentredPool's buffers grow by this many columns beyond what they must hold
+
+
 class CentredPool:
     """term_identification of subsets of a growing set of columns on the same rows, from one thin QR
     factorisation [yc | Z] = QR kept up to date as columns join (Z the columns centred at unit spread, yc
@@ -445,19 +449,17 @@ class CentredPool:
         self.rows = len(y)
         self.max_lag = max_lag
         self.yc = np.asarray(y, dtype=float) - float(np.mean(y))
-        self._z = np.zeros((self.rows, 0), order="F")  # the columns centred at unit spread
-        self._q = np.zeros((self.rows, 0), order="F")  # orthonormal basis of [yc | Z]
-        self._r = np.zeros((0, 0))  # [yc | Z] = Q R (R's columns: yc, then Z's), in a buffer with room
-        self._columns = 0  # columns of R held
-        self._size = 0  # columns of Z held (of the buffers' capacity)
-        self._rank = 0  # columns of Q held (rows of R)
+        self._z = ColumnBuffer(self.rows, 0, _ROOM, order="F")  # the columns centred at unit spread
+        self._q = ColumnBuffer(self.rows, 0, _ROOM, order="F")  # orthonormal basis of [yc | Z]
+        self._r = np.zeros((0, 0))  # [yc | Z] = Q R (R's columns: yc, then Z's; Q's columns its rows)
+        self._columns = 0  # columns of R held (of its buffer's)
         self._varying = np.zeros(0, bool)
         self._append(self.yc)
 
     def add(self, columns: np.ndarray) -> range:
         """Columns (N,e) joined (finite); their indices for identification()."""
         a = np.asarray(columns, dtype=float).reshape(self.rows, -1)
-        first = self._size
+        first = self._z.used
         for j in range(a.shape[1]):
             col = a[:, j]
             deviation = col - col.mean()
@@ -465,18 +467,16 @@ class CentredPool:
             varying = std > 1e-12 * max(float(np.max(np.abs(col))) if self.rows else 0.0, 1e-300)
             self._varying = np.append(self._varying, varying)
             z = deviation / std if varying else deviation
-            self._z = _grown(self._z, self._size + 1)
-            self._z[:, self._size] = z
-            self._size += 1
+            self._z.append(z[:, None])
             self._append(z)
-        return range(first, self._size)
+        return range(first, self._z.used)
 
     def _append(self, z: np.ndarray) -> None:
         """One column into [yc | Z] = QR: Gram-Schmidt against Q twice ("twice is enough"). A column within
         1e-10 of its norm of Q's span joins R without a new direction of Q: its remainder is left out, which
         moves its Gram matrix entries by at most 1e-10 of the columns' norms' product; any set that holds
         it and what it nearly is then has a VIF far above _CENTRED_MAX_VIF and goes to the caller."""
-        q = self._q[:, :self._rank]
+        q, rank = self._q.view(), self._q.used
         c = q.T @ z
         b = z - q @ c
         c2 = q.T @ b
@@ -488,12 +488,10 @@ class CentredPool:
             grown = np.zeros((max(2 * n, 16), max(2 * n, 16)))
             grown[:self._r.shape[0], :self._r.shape[1]] = self._r
             self._r = grown
-        self._r[:self._rank, n - 1] = c
+        self._r[:rank, n - 1] = c
         if norm > 1e-10 * max(float(np.linalg.norm(z)), 1e-300):
-            self._q = _grown(self._q, self._rank + 1)
-            self._q[:, self._rank] = b / norm
-            self._r[self._rank, n - 1] = norm
-            self._rank += 1
+            self._q.append((b / norm)[:, None])
+            self._r[rank, n - 1] = norm
         self._columns = n
 
     def identification(self, idx: Sequence[int]) -> tuple[float, float] | None:
@@ -503,23 +501,14 @@ class CentredPool:
         idx = list(idx)
         if not idx or not self._varying[idx].all() or self.rows <= len(idx) + 1:
             return None
-        r = np.linalg.qr(self._r[:max(self._rank, 1), [*(i + 1 for i in idx), 0]], mode="r")
+        r = np.linalg.qr(self._r[:max(self._q.used, 1), [*(i + 1 for i in idx), 0]], mode="r")
         if r.shape[0] < len(idx) + 1:  # fewer directions than columns (an exact fit, tied columns): R
             r = np.vstack([r, np.zeros((len(idx) + 1 - r.shape[0], r.shape[1]))])  # padded, R^T R the same
-        out = _t_ratios_from_factor(r, self._z[:, idx], self.yc, self.max_lag)
+        out = _t_ratios_from_factor(r, self._z.view()[:, idx], self.yc, self.max_lag)
         if out is None:
             return None
         t, vif = out
         return float(t.min()), float(vif.max())
-
-
-def _grown(buffer: np.ndarray, columns: int) -> np.ndarray:
-    """buffer (N, capacity) column-major with room for `columns` columns (doubled when full)."""
-    if columns <= buffer.shape[1]:
-        return buffer
-    out = np.zeros((buffer.shape[0], max(2 * buffer.shape[1], columns, 16)), order="F")
-    out[:, :buffer.shape[1]] = buffer
-    return out
 
 
 def offset_t_ratio(
