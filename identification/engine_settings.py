@@ -306,9 +306,11 @@ class SelectionSettings:
     # covariance weighs them, which the gyro's differences need for small terms (a closed-loop flight's rate
     # dampings); false: ordinary least squares on the weak rows, as the candidates were fitted
     refit_gls: bool = True
-    # of the candidates the pick's rule passes within its tolerance, at most one term larger than the pick,
-    # the simplest whose structure Hausman's test on the fit and pick rows does not reject, when it rejects
-    # the pick's (identification.specification_pick; weak rows with a stated noise only)
+    # of the candidates within the pick's tolerance, at most one term larger than the pick, whose structure
+    # Hausman's test on the fit and pick rows does not reject and whose terms the rule passes (each term's t
+    # ratio the better of the weak rows' own fit and the generalised one), the fewest terms and then the
+    # simplest the rows support as well as any, when it rejects the pick's
+    # (identification.specification_pick; weak rows with a stated noise only)
     specification_pick: bool = True
     # when no such candidate passes: at most this many steps of the specification search, each adding a
     # term of any candidate's (or the polish's extra ones, or a factor of one) or putting one in another's

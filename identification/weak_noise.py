@@ -156,6 +156,8 @@ class RefitTest:
     gls: np.ndarray  # the generalised ones
     se_plain: np.ndarray  # the first's, from its sandwich covariance under the stated noise
     se_gls: np.ndarray
+    rss: float = float("nan")  # the generalised fit's whitened residual sum of squares (its chi^2 times s2)
+    s2: float = float("nan")  # and its variance per whitened row (the noise's level, estimated)
 
     @property
     def generalised(self) -> bool:
@@ -197,7 +199,7 @@ def specification_test(parts: list[tuple[np.ndarray, np.ndarray, Whitener]]) -> 
     v_plain = estimate_covariance(np.linalg.pinv(a / scale), [w for _, _, w in parts], s2)
     stat, dof, p = hausman_statistic(b_plain - b_gls, v_plain, v_gls)
     se = (np.sqrt(np.maximum(np.diag(v), 0.0)) / scale for v in (v_plain, v_gls))
-    return RefitTest(stat, dof, p, b_plain / scale, b_gls / scale, *se)
+    return RefitTest(stat, dof, p, b_plain / scale, b_gls / scale, *se, rss=float(resid @ resid), s2=s2)
 
 
 def hausman_statistic(d: np.ndarray, v_plain: np.ndarray, v_gls: np.ndarray) -> tuple[float, int, float]:

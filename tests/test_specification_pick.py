@@ -5,12 +5,15 @@ reject."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import sympy
 
 from identification.body_frame import PRIMITIVE_SYMBOLS
 from identification.candidate import Candidate
 from identification.engine_settings import SelectionSettings
+from identification.pareto import terms_identified
 from identification.refit import structure_test
 from identification.specification_pick import specification_line, specification_pick
 from identification.weak_form import WeakSettings, weak_rows
@@ -64,10 +67,11 @@ def candidate(expr: sympy.Expr, complexity: int, loss: float, t: float = 10.0) -
     return Candidate(expr, complexity, loss, "test", holdout_loss=loss, weakest_t=t, largest_vif=1.0)
 
 
-def verdict(p: float) -> RefitTest:
-    """A specification test's result with p-value p (the fields specification_pick reads)."""
-    z = np.zeros(1)
-    return RefitTest(1.0, 1, p, z, z, z, z)
+def verdict(p: float, rss: float = 1.0, t: float = 10.0, terms: int = 1) -> RefitTest:
+    """A specification test's result with p-value p, the generalised fit's whitened residual rss and every
+    term's t ratio t in it (the fields specification_pick reads)."""
+    z = np.ones(terms)
+    return RefitTest(1.0, terms, p, z, z, z, z / t, rss=rss, s2=1.0)
 
 
 def test_the_pick_moves_to_the_simplest_equally_good_structure_not_rejected():
@@ -86,7 +90,7 @@ def test_the_pick_moves_to_the_simplest_equally_good_structure_not_rejected():
         return verdict(0.5 if frozenset(shapes) in passes else 1e-6)
 
     picked, record = specification_pick(chosen, [chosen, tie, unidentified, big, far], settings, 1.0, test)
-    assert picked is tie
+    assert picked.expression == tie.expression  # a copy, its t ratio the generalised fit's
     assert record["picked"]["p_value"] == 0.5 and record["rejected"]["p_value"] == 1e-6
     assert "picked an equally good one" in specification_line("dwx", record)
 
@@ -117,6 +121,94 @@ def test_the_screen_gives_the_exact_tests_p_value_for_any_subset():
         assert np.isclose(p, exact.p_value, rtol=1e-5, atol=1e-300), (subset, p, exact.p_value)
 
 
+def test_of_the_structures_that_pass_the_fewest_terms_then_the_best_generalised_fit():
+    """A constant beside the rejected pick passes the test as a weak term the rows hold does (a constant is a
+    node simpler): of the structures that pass, the fewest terms and then the least whitened residual of the
+    generalised fit is picked; a term only the generalised fit pins down (its t ratio in the weak rows' own
+    fit below min_t) is identified by it."""
+    settings = SelectionSettings()
+    one = sympy.Integer(1)
+    chosen = candidate(-0.003 * WZ, 5, 1.000)
+    constant = candidate(-0.003 * WZ + 2e-4 * one, 7, 1.000)
+    damping = candidate(-0.003 * WZ - 0.005 * U1, 8, 1.000, t=3.0)  # the weak rows' own fit: t 3
+    larger = candidate(-0.003 * WZ - 0.005 * U1 + WZ**2, 9, 0.999)
+    fits = {frozenset([WZ, one]): 900.0, frozenset([WZ, U1]): 100.0, frozenset([WZ, U1, WZ**2]): 90.0}
+
+    def test(shapes, t=20.0):
+        key = frozenset(shapes)
+        return verdict(0.2, fits[key], t, len(shapes)) if key in fits else verdict(1e-5, 1e4, t, len(shapes))
+
+    picked, record = specification_pick(chosen, [chosen, constant, damping, larger], settings, 1.0, test)
+    assert set(term_shapes_of(picked)) == {WZ, U1}, picked.expression
+    assert picked.weakest_t == 20.0 and record["tried"] == 2  # larger: two terms more than the pick
+    # a twin of the damping, more complex, that the rows do not support clearly better (chi^2 lower by less
+    # than CLEARLY_BETTER_CHI2): the simpler; supported clearly better: the twin
+    twin = candidate(-0.003 * WZ - 0.005 * U1**2, 10, 1.000)
+    for twin_rss, expected in ((95.0, {WZ, U1}), (90.0, {WZ, U1**2})):
+        fits[frozenset([WZ, U1**2])] = twin_rss
+        picked, _ = specification_pick(chosen, [chosen, constant, damping, twin], settings, 1.0, test)
+        assert set(term_shapes_of(picked)) == expected, (twin_rss, picked.expression)
+    # the generalised fit does not pin the term down either: the constant
+    picked, _ = specification_pick(chosen, [chosen, constant, damping, larger], settings, 1.0,
+                                   lambda shapes: test(shapes, 3.0 if U1 in shapes else 20.0))
+    assert set(term_shapes_of(picked)) == {WZ, one}, picked.expression
+
+
+def term_shapes_of(c: Candidate) -> list[sympy.Expr]:
+    """A candidate's additive terms, coefficients dropped."""
+    from identification.collinearity import term_shapes
+
+    return term_shapes(c.expression)
+
+
+def damped_flight(seed: int, seconds: float = 60.0, damping: float = 0.005):
+    """A rate wx' = -damping wx + drive (rad/s^2), the drive known, read by a gyro with white noise 0.01 rad/s
+    (the parts structure_test takes, as tied_flight's)."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds / DT)
+    t = np.arange(n) * DT
+    # rates of a few hundredths of a rad/s wandering slowly, as a hover's: the damping's share of the target
+    # is small, and mostly at the low frequencies
+    phase = rng.uniform(0, 2 * np.pi)
+    slow, fast = 2 * np.pi * 0.02, 2 * np.pi * 0.3
+    rate = 0.05 * np.sin(slow * t + phase) + 0.05 * np.sin(fast * t)  # rad/s, the rate the drive gives
+    drive = 0.05 * slow * np.cos(slow * t + phase) + 0.05 * fast * np.cos(fast * t) + damping * rate
+    w = np.zeros(n + 1)
+    w[0] = rate[0]
+    for k in range(n):
+        w[k + 1] = w[k] + DT * (drive[k] - damping * w[k])
+    gyro = w + 0.01 * rng.standard_normal(n + 1)
+    X = np.zeros((n, 16))
+    X[:, 9] = w[:-1]
+    op = weak_rows(t, None, WeakSettings())
+    return [(X, np.diff(gyro) / DT - drive, op)], [weak_whitener(op, t, None, STEP_DIFFERENCE)]
+
+
+def test_a_weak_damping_is_identified_by_the_generalised_fit_not_the_weak_rows_own():
+    """A rate damping of -0.005 /s (a rigid body's, small against the moments) on a hover's slowly wandering
+    rates: the weak rows' own fit leaves its t ratio below min_t, the generalised fit (the low frequencies,
+    where the gyro's differenced noise is small) pins it down, as the specification pick now asks of a
+    structure the test passes (generalised_t)."""
+    from identification.collinearity import term_t_ratios
+    from identification.specification_pick import generalised_t
+
+    wx = PRIMITIVE_SYMBOLS["wx"]
+    settings = SelectionSettings()
+    for seed in range(3):
+        parts, whiteners = damped_flight(seed)
+        (X, y, op), w = parts[0], whiteners[0]
+        plain_t, _ = term_t_ratios(np.asarray(op @ X[:, 9:10]), op @ y, None, w, offset=False)
+        result = structure_test([wx], parts, whiteners)
+        assert result is not None
+        damping = candidate(float(result.plain[0]) * wx, 3, 1.0, t=float(plain_t[0]))
+        assert plain_t[0] < settings.min_t and not terms_identified(damping.weakest_t, 1.0, settings)
+        measured = generalised_t(damping, result, [wx])
+        assert measured.weakest_t >= 3 * settings.min_t
+        assert terms_identified(measured.weakest_t, 1.0, settings)
+        assert abs(result.gls[0] + 0.005) < 3 * result.se_gls[0]  # and it is the damping
+        assert damping.weakest_t == plain_t[0]  # the candidate itself untouched
+
+
 def test_the_search_adds_the_term_the_test_asks_for_when_no_candidate_passes():
     """No equally good candidate passes: the specification search walks from the pick over the pool to a
     structure the test does not reject, and takes it only when the pick's rule does (every term identified);
@@ -141,9 +233,16 @@ def test_the_search_adds_the_term_the_test_asks_for_when_no_candidate_passes():
     assert set(term for term in picked.expression.args) == {WZ, WZ * ROTOR_SUM}
     assert record["searched"]["pool"] == len(pool) and record["picked"]["p_value"] >= 0.01
     assert "specification search" in specification_line("dwz", record)
-    # the same structure, but its terms not identified: the pick stays
+    # the same structure, but its terms not identified (by either fit, as the pick's rule asks of a structure
+    # the test passes: generalised_t): the pick stays
     made.clear()
-    stays, record = specification_pick(chosen, [chosen], settings, 1.0, test, space(1.0))
+
+    def unidentified(shapes):
+        result = test(shapes)
+        return None if result is None else dataclasses.replace(result, se_plain=np.abs(result.plain),
+                                                                se_gls=np.abs(result.gls))
+
+    stays, record = specification_pick(chosen, [chosen], settings, 1.0, unidentified, space(1.0))
     assert stays is chosen and "picked" not in record and made
     assert "nor the specification search" in specification_line("dwz", record)
     # and where its walk went: first the term the test asks for, which the rule did not take
