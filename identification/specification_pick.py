@@ -19,7 +19,9 @@ those the best generalised fit does not beat clearly, is picked instead (_best_s
 each term's t ratio of the better of the two fits (generalised_t): under a structure the test passes both
 are unbiased, and the generalised one pins down what the weak rows' own fit cannot (a rate damping, at the
 low frequencies; session 77: the paper vehicle's -0.0047 wx on a closed-loop realistic flight, t 2.7-5.4
-against 17-35, whose absence the test had seen and a constant had stood in for). When none, the pick
+against 17-35, whose absence the test had seen and a constant had stood in for). The specification search
+below keeps the weak rows' own t ratios: with the generalised ones it took stand-ins the rule had declined
+(seed 71's closed-loop realistic fang-chen-aero, dwy: 94 / 2 / 2 -> 94 / 2 / 7). When none, the pick
 stays unless the specification search (identification.specification_search: terms added or put in
 another's place, from every candidate's terms, and a passing structure the rule declines reduced one term at
 a time) finds a structure the test passes and the pick's rule and tolerance take; when it finds none, the
@@ -92,7 +94,6 @@ def specification_pick(chosen: Candidate, candidates: Sequence[Candidate], setti
         c = space.make(terms)
         if not isinstance(c, Candidate):
             return None
-        c = generalised_t(c, result, terms)
         tied_now, rule_now = within_pick_tolerance([*candidates, c], settings, scale)
         return (c, result) if any(t is c for t in tied_now) and rule_now(c) else None
 
