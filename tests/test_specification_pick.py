@@ -1,7 +1,8 @@
-"""Of equally good structures, the one the weak rows do not show misspecified
+"""Of equally good structures, one the weak rows do not show misspecified
 (identification.specification_pick): Hausman's test tells a term from its tie with a slowly varying factor,
-which the t rule cannot, and the pick moves to the simplest equally good candidate the test does not
-reject."""
+which the t rule cannot; of the equally good candidates the test does not reject, the pick moves to the one
+with the fewest terms, the simplest the rows do not fit clearly worse than the best, each term measured by
+the better t ratio of the weak rows' own fit and the generalised one."""
 
 from __future__ import annotations
 
@@ -123,9 +124,9 @@ def test_the_screen_gives_the_exact_tests_p_value_for_any_subset():
 
 def test_of_the_structures_that_pass_the_fewest_terms_then_the_best_generalised_fit():
     """A constant beside the rejected pick passes the test as a weak term the rows hold does (a constant is a
-    node simpler): of the structures that pass, the fewest terms and then the least whitened residual of the
-    generalised fit is picked; a term only the generalised fit pins down (its t ratio in the weak rows' own
-    fit below min_t) is identified by it."""
+    node simpler): of the structures that pass, the fewest terms, and of those the simplest whose generalised
+    fit is not clearly worse than the best (chi^2 within CLEARLY_BETTER_CHI2); a term only the generalised
+    fit pins down (its t ratio in the weak rows' own fit below min_t) is identified by it."""
     settings = SelectionSettings()
     one = sympy.Integer(1)
     chosen = candidate(-0.003 * WZ, 5, 1.000)
