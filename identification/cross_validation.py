@@ -199,8 +199,10 @@ class FoldedRows:
                     kind: str) -> tuple[np.ndarray, np.ndarray] | None:
         """The cross-validated losses of every one-term move of the model `current` onto `others` at once:
         (swaps (k, P): term i replaced by others[p]; additions (P,): others[p] added), each what
-        terms_loss gives that model up to rounding; NaN where the batch cannot answer (a term not prepared,
-        a model whose columns are (nearly) dependent: terms_loss answers those). None before prepare()."""
+        terms_loss gives that model up to rounding; inf where the move's new term is (nearly) a combination
+        of the terms it joins on a fold's rows (no loss: the rows cannot tell its coefficient from theirs);
+        NaN where the batch cannot answer (a term not prepared, current's own columns (nearly) dependent:
+        terms_loss answers those). None before prepare()."""
         if self._pool is None or not len(self.y):
             return None
         base = [self._index.get(s) for s in current]
@@ -366,7 +368,7 @@ class _FoldEquations:
         with np.errstate(all="ignore"):
             value = total / len(self.a) if kind == "absolute" else np.sqrt(total / len(self.a))
         value = np.where(np.isfinite(value), value, np.inf)
-        value[~usable] = np.nan
+        value[~usable] = np.inf  # a combination of the kept terms: a model the rows do not identify
         return value[:k], value[k]
 
     def added_losses(self, kept: Sequence[int], extra: np.ndarray, kind: str,

@@ -304,7 +304,9 @@ def _scored_moves(current: list[sympy.Expr], expression: sympy.Expr | None,
         if key in seen:
             continue
         seen.add(key)
-        value = known[m] if m < len(known) and np.isfinite(known[m]) else (
+        # inf from the batch: the move's new term is a combination of the terms it joins (the polish had
+        # refit each such move alone, some 500 a round on a closed-loop wx', for a loss no pick could take)
+        value = known[m] if m < len(known) and not np.isnan(known[m]) else (
             folded.terms_loss(shapes, kind) if shapes else float("inf"))
         if np.isfinite(value):
             scored.append((value, shapes))
@@ -350,7 +352,7 @@ def _move_masks(current: list[sympy.Expr], others: list[sympy.Expr],
 
 def _batch_values(batch: tuple[np.ndarray, np.ndarray] | None, k: int, count: int, moves: int) -> np.ndarray:
     """The losses FoldedRows.move_losses gave, in _moves' order (NaN: the removals, and what the batch
-    left to terms_loss)."""
+    left to terms_loss; inf: a move whose new term is a combination of those it joins, not scored)."""
     if batch is None:
         return np.full(moves, np.nan)
     swaps, adds = batch

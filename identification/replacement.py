@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 
 def replacements(
@@ -46,19 +47,63 @@ def replacements(
     out: list[int] = []
     yw = y * sw
     weighted = np.hstack([np.ones((len(y), 1)), F[:, terms]]) * sw[:, None]  # the model's columns, once
+    # one factorisation of the whole model for every term: the span of the model less term j is the
+    # model's span less one direction u_j = Q g_j (g_j = R^-T e_j, normalised: in the span, orthogonal to
+    # every other column), so a column's part outside the model less j is its part outside the model plus
+    # its u_j part, and the residual likewise (where a QR of the model less j per term was most of the time)
+    q, r = np.linalg.qr(weighted, mode="reduced")
+    diag = np.abs(np.diag(r))
+    if not (np.all(np.isfinite(r)) and diag.min() > 1e-10 * diag.max()):
+        return _replacements_term_by_term(F, Z, terms, blocked, weighted, yw, sw, nearest, correlations)
+    g = solve_triangular(r, np.eye(len(diag)), trans="T")  # column i: R^-T e_i
+    g /= np.linalg.norm(g, axis=0)
+    qy = q.T @ yw
+    r_all = yw - q @ qy  # the residual of the whole model
     for at, j in enumerate(terms):
-        zj = Z[:, j]
-        if not np.all(np.isfinite(zj)):
+        near = _nearest(Z, j, blocked, nearest, correlations)
+        if not near:
             continue
-        corr = None if correlations is None else correlations.get(j)
-        if corr is None:
-            with np.errstate(all="ignore"):
-                corr = np.abs(np.nan_to_num(Z.T @ zj, nan=0.0)) / len(zj)
-            if correlations is not None:
-                correlations[j] = corr
-        corr = corr.copy()
-        corr[blocked] = -1.0
-        near = [int(k) for k in np.argsort(-corr, kind="stable")[:nearest] if corr[k] > 0.0]
+        raw = F[:, [j, *near]]
+        cols = raw * sw[:, None]
+        qc = q.T @ cols
+        b = g[:, at + 1] @ qc  # its u_j part
+        # its part outside the whole model: what its norm leaves beside its part in the model
+        den = np.sum(cols * cols, axis=0) - np.sum(qc * qc, axis=0) + b * b
+        num = r_all @ cols + float(g[:, at + 1] @ qy) * b
+        with np.errstate(all="ignore"):
+            gain = np.where(den > 1e-12 * np.maximum(np.sum(raw**2, axis=0), 1e-300), num**2 / den, 0.0)
+        k = int(np.argmax(gain[1:]))
+        if gain[1 + k] > gain[0] and near[k] not in out:
+            out.append(near[k])
+    return out
+
+
+def _nearest(Z: np.ndarray, j: int, blocked: np.ndarray, nearest: int,
+             correlations: dict[int, np.ndarray] | None) -> list[int]:
+    """The columns of Z most correlated with column j (at most `nearest`, none blocked, a correlation
+    above 0); none when column j is not finite."""
+    zj = Z[:, j]
+    if not np.all(np.isfinite(zj)):
+        return []
+    corr = None if correlations is None else correlations.get(j)
+    if corr is None:
+        with np.errstate(all="ignore"):
+            corr = np.abs(np.nan_to_num(Z.T @ zj, nan=0.0)) / len(zj)
+        if correlations is not None:
+            correlations[j] = corr
+    corr = corr.copy()
+    corr[blocked] = -1.0
+    return [int(k) for k in np.argsort(-corr, kind="stable")[:nearest] if corr[k] > 0.0]
+
+
+def _replacements_term_by_term(F: np.ndarray, Z: np.ndarray, terms: list[int], blocked: np.ndarray,
+                               weighted: np.ndarray, yw: np.ndarray, sw: np.ndarray, nearest: int,
+                               correlations: dict[int, np.ndarray] | None) -> list[int]:
+    """replacements with the model less each term factorised anew (a model whose columns are (nearly)
+    dependent, where the whole model's factor cannot be inverted)."""
+    out: list[int] = []
+    for at, j in enumerate(terms):
+        near = _nearest(Z, j, blocked, nearest, correlations)
         if not near:
             continue
         q = np.linalg.qr(np.delete(weighted, at + 1, axis=1), mode="reduced")[0]

@@ -249,8 +249,8 @@ def test_the_pick_keeps_a_term_only_the_pick_rows_excite():
 @pytest.mark.parametrize("kind", ["absolute", "squared"])
 def test_the_one_term_moves_scored_at_once_are_the_moves_scored_one_by_one(kind):
     """move_losses (the polish's thousands of swaps and additions from one solve per fold and kept set) gives
-    each move the loss terms_loss gives it, and leaves to terms_loss a move whose new term is a combination
-    of the kept ones (there the Schur complement is rounding)."""
+    each move the loss terms_loss gives it, and no loss (inf) to a move whose new term is a combination of
+    the kept ones (there the Schur complement is rounding: the rows cannot tell the terms apart)."""
     X = _rows(1000, 8)
     current = [sympy.Integer(1), S["u1"] * S["wz"], S["vb"] * S["wx"], S["wy"]]
     y = expression_columns(current, X) @ np.array([0.3, 2e-3, -0.7, 0.2])
@@ -264,11 +264,11 @@ def test_the_one_term_moves_scored_at_once_are_the_moves_scored_one_by_one(kind)
         for i in range(len(current)):
             model = current[:i] + [other] + current[i + 1:]
             if other == dependent and i not in (1, 3):  # still a combination of the kept terms
-                assert np.isnan(swaps[i, p])
+                assert swaps[i, p] == np.inf
             else:
                 assert swaps[i, p] == pytest.approx(rows.terms_loss(model, kind), rel=1e-9)
         if other == dependent:
-            assert np.isnan(adds[p])
+            assert adds[p] == np.inf
         else:
             assert adds[p] == pytest.approx(rows.terms_loss([*current, other], kind), rel=1e-9)
     assert FoldedRows(rows.parts, 5).move_losses(current, others, kind) is None  # not prepared

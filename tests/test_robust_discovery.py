@@ -7,9 +7,10 @@ replacement of a term by a near-collinear truer feature.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from identification.discovery import _standardized
-from identification.replacement import replacements
+from identification.replacement import _replacements_term_by_term, replacements
 from identification.robust_weights import HUBER_K, huber_weights, robust_sigma
 from identification.sparse import LeastSquaresProblem
 
@@ -75,3 +76,30 @@ def test_replacement_finds_the_rotor_sum_product_a_rate_stands_for():
     Z = _standardized(F)
     assert replacements(F, Z, y, terms=[0, 1], exclude=[0, 1]) == [2]
     assert replacements(F, Z, y, terms=[2, 1], exclude=[0, 1, 2]) == []
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_replacements_from_the_whole_models_factor_are_those_of_a_factor_per_term(seed):
+    """replacements factorises the model once and takes each term out of it as one direction; the features
+    it proposes are those a factorisation of the model less each term gives (weighted rows, near-twins of
+    the model's terms among the features), and a model with a repeated column falls back to the latter."""
+    rng = np.random.default_rng(seed)
+    n, m = 3000, 60
+    base = rng.normal(size=(n, 8))
+    F = np.column_stack([base, base @ rng.normal(size=(8, m - 8)) * 0.3 + rng.normal(size=(n, m - 8))])
+    F[:, 20] = F[:, 0] * (1.0 + 0.01 * rng.normal(size=n))  # a near-twin of a model term
+    terms = [0, 1, 2, 3, 9, 10]
+    y = F[:, terms[1:]] @ rng.normal(size=len(terms) - 1) + F[:, 20] + 1e-3 * rng.normal(size=n)  # 20, not 0
+    Z = _standardized(F)
+    weights = rng.uniform(0.5, 1.0, n) if seed % 2 else None
+    sw = np.ones(n) if weights is None else np.sqrt(weights)
+    weighted = np.hstack([np.ones((n, 1)), F[:, terms]]) * sw[:, None]
+    blocked = np.zeros(m, dtype=bool)
+    blocked[terms] = True
+    one_by_one = _replacements_term_by_term(F, Z, terms, blocked, weighted, y * sw, sw, 40, None)
+    assert 20 in one_by_one  # the test can fail: the near-twin serves better than term 0
+    assert replacements(F, Z, y, terms, terms, weights) == one_by_one
+    F[:, 11] = F[:, 10]  # a repeated column: the whole model's factor is singular
+    assert replacements(F, Z, y, [*terms, 11], terms, weights) == _replacements_term_by_term(
+        F, Z, [*terms, 11], blocked | (np.arange(m) == 11), np.hstack([weighted, F[:, [11]] * sw[:, None]]),
+        y * sw, sw, 40, None)
