@@ -70,12 +70,19 @@ def replacements(
         # its part outside the whole model: what its norm leaves beside its part in the model
         den = np.sum(cols * cols, axis=0) - np.sum(qc * qc, axis=0) + b * b
         num = r_all @ cols + float(g[:, at + 1] @ qy) * b
-        with np.errstate(all="ignore"):
-            gain = np.where(den > 1e-12 * np.maximum(np.sum(raw**2, axis=0), 1e-300), num**2 / den, 0.0)
-        k = int(np.argmax(gain[1:]))
-        if gain[1 + k] > gain[0] and near[k] not in out:
-            out.append(near[k])
+        _take_better(raw, num, den, near, out)
     return out
+
+
+def _take_better(raw: np.ndarray, num: np.ndarray, den: np.ndarray, near: list[int], out: list[int]) -> None:
+    """Append to out the feature of near that lowers the residual sum of squares most in the term's place,
+    when it does better than the term: raw (N, 1 + len(near)) the term's and near's columns, num and den each
+    column's inner product with the residual of the model less the term and its squared norm outside it."""
+    with np.errstate(all="ignore"):
+        gain = np.where(den > 1e-12 * np.maximum(np.sum(raw**2, axis=0), 1e-300), num**2 / den, 0.0)
+    k = int(np.argmax(gain[1:]))
+    if gain[1 + k] > gain[0] and near[k] not in out:
+        out.append(near[k])
 
 
 def _nearest(Z: np.ndarray, j: int, blocked: np.ndarray, nearest: int,
@@ -111,11 +118,5 @@ def _replacements_term_by_term(F: np.ndarray, Z: np.ndarray, terms: list[int], b
         raw = F[:, [j, *near]]
         cols = raw * sw[:, None]
         cols = cols - q @ (q.T @ cols)
-        den = np.sum(cols * cols, axis=0)
-        with np.errstate(all="ignore"):
-            gain = np.where(den > 1e-12 * np.maximum(np.sum(raw**2, axis=0), 1e-300),
-                            (r @ cols) ** 2 / den, 0.0)
-        k = int(np.argmax(gain[1:]))
-        if gain[1 + k] > gain[0] and near[k] not in out:
-            out.append(near[k])
+        _take_better(raw, r @ cols, np.sum(cols * cols, axis=0), near, out)
     return out

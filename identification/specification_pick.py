@@ -123,8 +123,8 @@ def _best_supported(passing: list[tuple[Candidate, RefitTest]]) -> tuple[Candida
     -0.0047 wx on a closed-loop realistic-sensor flight, seed 89: chi^2 524 worse) passes the test too, and
     is a node simpler; a rotor pattern and its twin in the squares (fy's wx (u1 - u2 + u3 + u4) and wx (u1^2
     + .. + u4^2) on closed-loop realistic fang-chen-aero: 5.1 apart) are not told apart by the rows."""
-    fewest = min(len(term_shapes(c.expression)) for c, _ in passing)
-    same = [(c, r) for c, r in passing if len(term_shapes(c.expression)) == fewest]
+    sizes = [len(term_shapes(c.expression)) for c, _ in passing]
+    same = [cr for cr, size in zip(passing, sizes, strict=True) if size == min(sizes)]
     top = min(same, key=lambda cr: cr[1].rss)[1]
     margin = CLEARLY_BETTER_CHI2 * top.s2 if np.isfinite(top.s2) else 0.0
     close = [(c, r) for c, r in same if r.rss <= top.rss + margin]
