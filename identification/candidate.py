@@ -50,6 +50,11 @@ class Candidate:
     # (term shapes, coefficients in the target's unit per each term's) when the candidate is that sum, as
     # fitted (refit.terms_candidate): its slopes are read from the terms' own (self_feedback.slope)
     linear: tuple[tuple[sympy.Expr, ...], np.ndarray] | None = field(default=None, repr=False, compare=False)
+    # (X (N,16) -> each of its terms' mean over X's rows (k,) in its unit, NaN where not finite; their
+    # coefficients (k,)) when the candidate is a constant plus that sum of terms as its engine evaluates
+    # them: its slope is read from its terms' means (self_feedback.slope), each mean computed once per rows
+    term_means: tuple[Callable[[np.ndarray], np.ndarray], np.ndarray] | None = field(
+        default=None, repr=False, compare=False)
     # () -> train_loss, run once when first read (trained()): the polish fits thousands of moves, each picked
     # on its held-out loss, and their training losses are read only for the few on the reported front
     train: Callable[[], float] | None = field(default=None, repr=False, compare=False)

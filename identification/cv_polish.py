@@ -121,7 +121,7 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
     for s in [*term_shapes(chosen.expression), *pool]:
         distinct.setdefault(_values_up_to_sign(folded.column(s)), s)
     pool = {s: s for s in distinct.values()}
-    folded.prepare(list(pool.values()))
+    folded.extend(list(pool.values()))
     scale = folded.scale
     expanded: set[frozenset[sympy.Expr]] = set()
     frontier: list[list[sympy.Expr]] = []

@@ -127,24 +127,34 @@ class _Columns:
 
     def __init__(self, space: FeatureSpace):
         self.space = space
-        self._cache: list[tuple[np.ndarray, np.ndarray, dict[int, np.ndarray]]] = []
+        self._cache: list[tuple[np.ndarray, np.ndarray, dict[int, np.ndarray], dict[int, float]]] = []
 
     def primitives(self, X: np.ndarray) -> np.ndarray:
         """The primitive matrix of X (N, n_primitives)."""
         return self._entry(X)[0]
 
     def __call__(self, X: np.ndarray, indices: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        P, cache = self._entry(X)
+        P, cache, _ = self._entry(X)
         return self.space.columns(P, indices, cache, out)
 
-    def _entry(self, X: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-        for key, P, cache in self._cache:
+    def means(self, X: np.ndarray, indices: np.ndarray) -> np.ndarray:
+        """Each feature's mean over X's rows (len(indices),), NaN for one not finite on every row."""
+        P, cache, means = self._entry(X)
+        for i in indices:
+            if int(i) not in means:
+                col = self.space.columns(P, [int(i)], cache)[:, 0]
+                means[int(i)] = float(np.mean(col)) if np.all(np.isfinite(col)) else float("nan")
+        return np.asarray([means[int(i)] for i in indices])
+
+    def _entry(self, X: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], dict[int, float]]:
+        for key, P, cache, means in self._cache:
             if key is X:
-                return P, cache
+                return P, cache, means
         P = primitive_matrix(X, self.space.primitives)
         cache: dict[int, np.ndarray] = {}
-        self._cache = [(X, P, cache), *self._cache[:3]]
-        return P, cache
+        means: dict[int, float] = {}
+        self._cache = [(X, P, cache, means), *self._cache[:3]]
+        return P, cache, means
 
 
 class DiscoveryEngine:
@@ -383,7 +393,8 @@ class DiscoveryEngine:
                 [space.expressions[i] for i in pool], [f"rung{space.rungs[i]}" for i in pool], F[:, pool],
                 list(pool), lambda X_, js, ids=ids, cols=columns: cols(X_, ids[js]), y, loss, seen,
                 space_indices=ids, weights=weights, start=start_at,
-                addable=None if start_at is None else ~heights[ids])
+                addable=None if start_at is None else ~heights[ids],
+                means=lambda X_, js, ids=ids, cols=columns: cols.means(X_, ids[js]))
             attach_holdout(round_cands, Xh, yh, loss, weak_h)
             candidates += round_cands
             previous, best = best, select(candidates, self.round_selection, scale=scale)
@@ -930,6 +941,7 @@ class DiscoveryEngine:
         weights: np.ndarray | None = None,
         start: list[int] | None = None,
         addable: np.ndarray | None = None,
+        means: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     ) -> list[Candidate]:
         """Every new active set of the sparse paths over (1, pool columns) as a candidate.
 
@@ -940,7 +952,8 @@ class DiscoveryEngine:
         are space features. weights: the paths' row weights (robust_weights). start: pool positions of the
         last round's pick, from which one more forward path goes on (the path from no terms re-chooses every
         term on noisy targets and may never reach that model plus the round's new features), adding only the
-        pool columns `addable` (bool per pool column; None: any)."""
+        pool columns `addable` (bool per pool column; None: any). means(X_, js): columns js's means over
+        X_'s rows (each candidate's term_means: its self-feedback slope without evaluating it)."""
         theta = np.hstack([np.ones((len(y), 1)), theta_pool])  # weak rows: V 1 = 1 (weights sum to 1)
         lag = self._weak_lag()  # weak rows: the windows' overlap for the t ratios' effective rows
         problem = LeastSquaresProblem(theta, y, weights)
@@ -988,6 +1001,7 @@ class DiscoveryEngine:
                     train_loss=loss_fn(y, theta[:, idx] @ c, loss),
                     engine=engine or self.name,
                     predict=lambda X_, js=js, cf=cf, k=const: evaluate(X_, js) @ cf + k,
+                    term_means=None if means is None else (lambda X_, js=js: means(X_, js), cf),
                 )
             )
             out[-1].measure = functools.partial(_measure_terms, theta, idx, y, lag, self.noise) \

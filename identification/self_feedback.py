@@ -88,6 +88,11 @@ def slope(candidate: Candidate, X: np.ndarray, target: str, moved: tuple | None 
         means = [_term_slope(s, up, down, h) for s in shapes]
         if all(m is not None for m in means):  # each term finite on every row: the mean is the terms' sum
             return float(np.asarray(means) @ coef)
+    if candidate.term_means is not None:  # the engine's own columns: their means, not the candidate's sums
+        term_mean, coef = candidate.term_means
+        value = float((term_mean(up) - term_mean(down)) @ coef / (2 * h)) if len(coef) else 0.0
+        if np.isfinite(value):
+            return value
     d = (candidate.evaluate(up) - candidate.evaluate(down)) / (2 * h)
     return float(np.nanmean(d)) if np.isfinite(d).any() else float("nan")
 

@@ -322,6 +322,28 @@ def test_a_model_holding_a_term_of_no_pool_is_still_scored_at_once():
         FoldedRows(rows.parts, 5).terms_loss(pool[:3], "squared"), rel=1e-12)
 
 
+def test_terms_included_later_give_the_equations_a_pool_prepared_with_them_would():
+    """include() computes only the new terms' blocks of the Gram matrices (over all rows, each fold's dropped
+    rows and the fit rows): every model's held-out predictions and fit coefficients are then those of a
+    pool prepared with every term at once, and a term already prepared is not added twice."""
+    X = _rows(1000, 9)
+    pool = [sympy.Integer(1), S["u1"] * S["wz"], S["wy"]]
+    later = [S["u2"], S["wx"] ** 2, S["wy"] * (S["u1"] - S["u2"]), S["wy"]]
+    y = expression_columns(pool + later[:3], X) @ np.array([0.3, 2e-3, -0.01, 1e-3, 0.2, 1e-4])
+    y = y + 0.05 * np.random.default_rng(12).standard_normal(len(y))
+    parts = [(X[:700], y[:700], None, 5), (X[700:], y[700:], None, 5)]
+    joined, fresh = FoldedRows(parts, 5), FoldedRows(parts, 5)
+    joined.prepare(pool)
+    joined.include(later)
+    fresh.prepare(pool + later)
+    assert joined._index == fresh._index  # the same columns in the same order, wy once
+    np.testing.assert_allclose(joined._pool.gram, fresh._pool.gram, rtol=1e-12, atol=1e-12)
+    for shapes in (pool + later[:3], [sympy.Integer(1), *later[:2]], later[1:3]):
+        np.testing.assert_allclose(joined.predictions(shapes), fresh.predictions(shapes), rtol=1e-10)
+        np.testing.assert_allclose(joined.fit_coefficients(shapes), fresh.fit_coefficients(shapes),
+                                   rtol=1e-10)
+
+
 def test_a_moves_fit_from_the_prepared_equations_is_least_squares_on_the_fit_rows():
     """fit_coefficients (the polish's move fits) gives the least-squares coefficients on the fit rows alone,
     per term in the term's own unit (terms 1e6 apart in size), and leaves to lstsq what it cannot answer:
