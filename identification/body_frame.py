@@ -172,6 +172,24 @@ def body_targets(xi: np.ndarray, targets: np.ndarray, gravity: float) -> np.ndar
     return out
 
 
+def composed_values(body: dict[str, np.ndarray], X: np.ndarray, names: Sequence[str], gravity: float
+                    ) -> np.ndarray:
+    """The targets `names` (N, len(names)) from the body targets' values (N,) each on rows X (N,16):
+    ax ay az = R f_b + g e_z (m/s^2, NED), dwx dwy dwz as they are (rad/s^2, FRD); compose_ned in numbers."""
+    X = np.asarray(X, dtype=float)
+    out = np.empty((len(X), len(names)))
+    forces = ("ax", "ay", "az")
+    a = np.zeros((len(X), 3))
+    if any(n in forces for n in names):
+        f = np.column_stack([body[n] for n in BODY_FORCE_NAMES])
+        with np.errstate(all="ignore"):
+            a = np.einsum("nij,nj->ni", rotation_matrix(X[:, 6], X[:, 7], X[:, 8]), f)
+        a[:, 2] += gravity
+    for j, n in enumerate(names):
+        out[:, j] = a[:, forces.index(n)] if n in forces else body[n]
+    return out
+
+
 def compose_ned(body: dict[str, sympy.Expr], gravity: float) -> dict[str, sympy.Expr]:
     """ax, ay, az (NED, m/s^2) = R f_b + g e_z from fx, fy, fz (in primitive names or the 16 variables)."""
     s = SYMBOLS
@@ -214,11 +232,14 @@ def composed_targets(
     wanted: tuple[str, ...] | list[str],
     splits: dict[str, tuple[np.ndarray, np.ndarray]],
     operators: dict[str, Any] | None = None,
+    predictions: dict[str, dict[str, np.ndarray]] | None = None,
 ) -> dict[str, TargetModel]:
     """The wanted NED/FRD targets composed from the body model, with metrics per split on the NED data.
 
     splits: name (train, pick, validation) -> (X (N,16), Y (N,6) the NED targets ax ay az dwx dwy dwz).
     operators: name -> weak-form matrix V (M, N) (identification.weak_form): metrics on V Y and V f(X).
+    predictions: body target -> split -> its values on the split's rows (N,) when already computed (identify's
+    workers): the NED ones are composed from them (composed_values), the composed expressions not compiled.
     """
     exprs: dict[str, sympy.Expr] = {}
     bt = body.targets
@@ -233,7 +254,12 @@ def composed_targets(
     for split, (Xs, Ys) in splits.items():
         if len(Xs) == 0:
             continue
-        pred = np.atleast_2d(model.evaluate(Xs[:, :12], Xs[:, 12:]))
+        parts = body_fit_names(model.target_names)
+        if predictions is not None and all(split in predictions.get(b, {}) for b in parts):
+            pred = composed_values({b: predictions[b][split] for b in parts}, Xs, model.target_names,
+                                   body.gravity)
+        else:
+            pred = np.atleast_2d(model.evaluate(Xs[:, :12], Xs[:, 12:]))
         for j, n in enumerate(model.target_names):
             y = Ys[:, TARGET_NAMES.index(n)]
             op = (operators or {}).get(split)

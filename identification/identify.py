@@ -388,6 +388,9 @@ def identify(
             for split, xx, yy in (("train", X[ok], y[ok]), ("pick", Xp[okp], yp[okp]),
                                   ("validation", Xv[okv], yv[okv]))
         }
+        if body_frame:  # the values the NED targets' metrics are composed from (all of each split's rows)
+            out["predictions"] = {split: chosen.evaluate(xx) for split, xx in
+                                  (("train", X), ("pick", Xp), ("validation", Xv))}
         timings = {k: round(v, 3) for k, v in getattr(eng, "timings", {}).items()}
         timings["total"] = round(elapsed, 3)
         out["timings"] = timings
@@ -475,7 +478,8 @@ def identify(
         operators = None
         if weak is not None:  # rows with every target finite (the dataset's rows are)
             operators = {k: weak_rows(roles_of[k].t, roles_of[k].flight, weak) for k in splits}
-        targets_done = composed_targets(body, targets, splits, operators)
+        predictions = {name: done[name]["predictions"] for name in fit_names if "predictions" in done[name]}
+        targets_done = composed_targets(body, targets, splits, operators, predictions)
         for name, t in targets_done.items():  # the threshold is on the composed targets, as reported
             r2v = t.metrics["validation"]["r2"]
             if not r2v >= r2_threshold:
