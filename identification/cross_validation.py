@@ -153,34 +153,14 @@ class FoldedRows:
     def prepare(self, shapes: Sequence[sympy.Expr]) -> None:
         """Precompute the Gram matrices of these terms (finite ones) over all rows and over each fold's
         dropped rows, so that a model of any of them is scored in O(k^3) per fold plus its held-out rows
-        (cv_polish scores thousands of one-term moves over one pool of terms)."""
-        keys: dict[sympy.Expr, None] = {}
-        cols = []
-        self._offered.update(shapes)
-        for s in shapes:
-            col = self.column(s)
-            if s not in keys and np.all(np.isfinite(col)):
-                keys[s] = None
-                cols.append(col)
-        if not cols or not len(self.y):
-            return
-        self._index = {k: i for i, k in enumerate(keys)}
-        self._pool = _FoldEquations(np.column_stack(cols), self.y, self.dropped, self.held, self._first)
+        (cv_polish scores thousands of one-term moves over one pool of terms); those prepared before are
+        dropped."""
+        self._pool, self._index, self._offered = None, {}, set()
+        self.extend(shapes)
 
     def extend(self, shapes: Sequence[sympy.Expr]) -> None:
-        """Prepare these terms, keeping those prepared (prepare() when none are): the candidates' scoring
-        and the polish share one pool, each term's columns multiplied out once."""
-        if self._pool is None:
-            self.prepare(shapes)
-        else:
-            self.include(shapes)
-
-    def include(self, shapes: Sequence[sympy.Expr]) -> None:
-        """Prepare these terms too, beside those prepared (nothing when all are): a polish move can bring in a
-        term of no pool (a rotor pattern), and a model holding one would be scored move by move. Only the
-        new terms' blocks of the Gram matrices are computed (_FoldEquations.joined)."""
-        if self._pool is None or all(s in self._offered for s in shapes):
-            return
+        """Prepare these terms, keeping those prepared: the candidates' scoring and the polish share one
+        pool, and a term joining it adds only its blocks of the Gram matrices (_FoldEquations.joined)."""
         new: dict[sympy.Expr, None] = {}
         cols = []
         for s in shapes:
@@ -188,13 +168,22 @@ class FoldedRows:
                 continue
             self._offered.add(s)
             col = self.column(s)
-            if s not in new and np.all(np.isfinite(col)):
+            if np.all(np.isfinite(col)):
                 new[s] = None
                 cols.append(col)
-        if cols:
-            start = len(self._index)
-            self._index.update({k: start + i for i, k in enumerate(new)})
-            self._pool = self._pool.joined(np.column_stack(cols))
+        if not cols or not len(self.y):
+            return
+        start = len(self._index)
+        self._index.update({k: start + i for i, k in enumerate(new)})
+        a = np.column_stack(cols)
+        self._pool = (_FoldEquations(a, self.y, self.dropped, self.held, self._first) if self._pool is None
+                      else self._pool.joined(a))
+
+    def include(self, shapes: Sequence[sympy.Expr]) -> None:
+        """Prepare these terms too, beside those prepared (nothing before a pool is): a polish move can bring
+        in a term of no pool (a rotor pattern), and a model holding one would be scored move by move."""
+        if self._pool is not None:
+            self.extend(shapes)
 
     def fit_coefficients(self, shapes: Sequence[sympy.Expr]) -> np.ndarray | None:
         """The terms' least-squares coefficients on the fit rows (the target's unit per each term's), from
