@@ -67,6 +67,24 @@ def test_the_coefficient_floor_quotes_the_refit_when_it_misses_the_floor_too():
         floors = dict(discovery.case_floors(case, rows, 60.0))
         label = next(label for label in floors if "coefficients within" in label)
         assert floors[label] is (ours_error <= 0.05)
+        assert f": largest {ours_error:.2%} ({refit.worst})" in label  # which term misses it
         labels[ours_error, refit_error] = label
     assert "the true terms refit on the training flight: 20.0%" in labels[0.5, 0.2]
     assert "the true terms refit" not in labels[0.5, 1e-3]
+
+
+def test_the_csv_names_where_each_rows_largest_coefficient_error_is(tmp_path):
+    """The CSV's max_coef_term column: the target and term of each row's largest coefficient error."""
+    import csv
+
+    case = discovery.Case("paper vehicle")
+    train, val = discovery.synthetic(case, 2000, seed=4), discovery.synthetic(case, 1000, seed=1004)
+    body = discovery.body_expressions(discovery.VEHICLE, case.effects)
+    rng = np.random.default_rng(8)
+    train.targets[:, 3:] += 0.05 * rng.standard_normal((len(train), 3))
+    row = _refit_row(case, train, val, body)
+    discovery.write_outputs([row], [], tmp_path, stem="t")
+    with (tmp_path / "t.csv").open(encoding="utf-8") as fh:
+        (read,) = list(csv.DictReader(fh))
+    assert read["max_coef_term"] == row.worst and read["max_coef_term"].split(":")[0] in ("dwx", "dwy", "dwz")
+    assert float(read["max_coef_error"]) == float(f"{row.max_error:.6g}")
