@@ -240,6 +240,20 @@ class FoldedRows:
                 swaps[row, ok] = values
         return swaps, adds
 
+    def addition_losses(self, current: Sequence[sympy.Expr], others: Sequence[sympy.Expr],
+                        kind: str) -> np.ndarray:
+        """The cross-validated loss of current + [o] for each o of others (P,) at once, as terms_loss gives
+        it up to rounding; NaN where the batch cannot answer (a term not prepared, current's equations
+        singular on a fold's rows, o (nearly) a combination of current's terms there)."""
+        base = [self._index.get(s) for s in current]
+        extra = [self._index.get(s) for s in others]
+        out = np.full(len(others), np.nan)
+        ok = np.asarray([i is not None for i in extra], bool)
+        if self._pool is None or not len(self.y) or any(i is None for i in base) or not ok.any():
+            return out
+        out[ok] = self._pool.added_losses(base, np.asarray([i for i in extra if i is not None], int), kind)
+        return out
+
     def terms_loss(self, shapes: Sequence[sympy.Expr], kind: str) -> float:
         """The cross-validated loss of a model of these terms; inf when a term is not finite."""
         return loss_fn(self.y, self.predictions(shapes), kind) if len(self.y) else float("inf")

@@ -107,21 +107,11 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
             all_tolerated: bool = False) -> Candidate:
     if chosen.holdout_loss is None or not np.isfinite(chosen.holdout_loss):
         return chosen  # nothing scored: no tolerance to compare moves against
-    pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
-    for c in candidates:
-        for s in new_shapes(c, pool):
-            pool[s] = s
-    for s in extra:
-        pool.setdefault(s, s)
+    pool = move_pool(chosen, candidates, folded, extra)
     bits: dict[sympy.Expr, int] = {}  # each term's bit in the term sets' masks (_mask)
     # a set's mask does not depend on its terms' order, nor does any test on masks on which term got which bit
     seen = {_mask(c.linear[0] if c.build is not None else term_shapes(c.expression), bits)
             for c in candidates}
-    distinct: dict[bytes, sympy.Expr] = {}  # one term per column of values: twins only make ties
-    for s in [*term_shapes(chosen.expression), *pool]:
-        distinct.setdefault(_values_up_to_sign(folded.column(s)), s)
-    pool = {s: s for s in distinct.values()}
-    folded.extend(list(pool.values()))
     scale = folded.scale
     expanded: set[frozenset[sympy.Expr]] = set()
     frontier: list[list[sympy.Expr]] = []
@@ -169,6 +159,25 @@ def _polish(chosen: Candidate, candidates: list[Candidate], folded: FoldedRows, 
         if key_now in expanded and not frontier[:beam]:
             return chosen
     return chosen
+
+
+def move_pool(chosen: Candidate, candidates: Sequence[Candidate], folded: FoldedRows,
+              extra: Sequence[sympy.Expr] = ()) -> dict[sympy.Expr, sympy.Expr]:
+    """The terms the moves from `chosen` may use, each its own key: every candidate's and `extra`, one per
+    column of values up to sign over folded's rows (the pick's own terms first; twins only make ties), all
+    joined to folded's pool."""
+    pool: dict[sympy.Expr, sympy.Expr] = {}  # sympy expressions hash by structure
+    for c in candidates:
+        for s in new_shapes(c, pool):
+            pool[s] = s
+    for s in extra:
+        pool.setdefault(s, s)
+    distinct: dict[bytes, sympy.Expr] = {}
+    for s in [*term_shapes(chosen.expression), *pool]:
+        distinct.setdefault(_values_up_to_sign(folded.column(s)), s)
+    pool = {s: s for s in distinct.values()}
+    folded.extend(list(pool.values()))
+    return pool
 
 
 def _values_up_to_sign(column: np.ndarray) -> bytes:

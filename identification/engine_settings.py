@@ -321,6 +321,10 @@ class SelectionSettings:
     # that refit's standard errors go in the model file; a term whose standard error is above this fraction
     # of its coefficient is named on the terminal as not pinned down by the flight
     report_relative_se: float = 0.1
+    # up to this many terms whose addition to the chosen structure lowers the cross-validated loss by at
+    # least min_t paired standard errors over the folds' blocks, within the pick's tolerance, are named in
+    # the model file and on the terminal, not added (identification.supported_terms; cv_folds > 1); 0: none
+    report_supported: int = 3
 
 
 @dataclass(frozen=True)
@@ -378,6 +382,9 @@ def load_engine_settings(path: str | os.PathLike[str] | None) -> EngineSettings:
     if not settings.selection.report_relative_se > 0:
         raise UserError(f"{where}: key 'selection.report_relative_se': must be above 0",
                         hint="the fraction of a coefficient its standard error may reach unnamed, e.g. 0.1")
+    if settings.selection.report_supported < 0:
+        raise UserError(f"{where}: key 'selection.report_supported': must be 0 or more",
+                        hint="the most terms the flight supports beyond the pick to name, e.g. 3 (0: none)")
     bad = [g for g in settings.sparse.groups if g not in GROUPS]
     if bad:
         raise UserError(

@@ -73,6 +73,7 @@ from identification.self_feedback import mark_self_feedback
 from identification.sparse import single_threaded_blas
 from identification.specification_pick import specification_line, specification_pick
 from identification.specification_search import SearchSpace, with_factors
+from identification.supported_terms import supported_additions, supported_line
 from identification.target_pool import frozen, map_targets, processes_for, thawed
 from identification.weak_form import WeakSettings, overlap_lag, weak_rows
 from identification.weak_noise import stacked_whitener, stated_whitener, uncertain_terms
@@ -381,6 +382,10 @@ def identify(
             if refit is not None:
                 candidates = [refit if c is chosen else c for c in candidates]
                 chosen = refit
+        supported = []  # terms the rows support beside the chosen ones, within the tolerance: named only
+        if folded is not None and settings.selection.report_supported:
+            supported = supported_additions(chosen, candidates, folded, loss, settings.selection.min_t, extra,
+                                            settings.selection.report_supported)
         elapsed = time.perf_counter() - start
         metrics = {
             split: table_metrics(yy, chosen.evaluate(xx)) if ops[split] is None
@@ -416,6 +421,9 @@ def identify(
         if spec is not None:  # the pick's structure rejected by the rows (specification_pick)
             out["identifiability"]["specification_pick"] = spec
             lines.append(specification_line(name, spec))
+        if supported:
+            out["identifiability"]["supported_additions"] = [f.as_dict() for f in supported]
+            lines.append(supported_line(name, supported, folded.blocks))
         if chosen.standard_errors:
             out["identifiability"]["standard_errors"] = {term: {"coefficient": k, "standard_error": e}
                                                          for term, (k, e) in chosen.standard_errors.items()}
