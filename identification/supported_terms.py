@@ -77,9 +77,24 @@ def supported_additions(chosen: Candidate, candidates: Sequence[Candidate], fold
     return found[:limit]
 
 
+def common_factor(terms: Sequence[sympy.Expr]) -> sympy.Expr | None:
+    """The product of the factors every one of two or more terms holds (None: none): the racer's wx' named
+    u4 wy^2, wy^2 sqrt(u1^2 + .. + u4^2) and u1 wy^2, each wy^2 times a factor nearly constant in flight."""
+    if len(terms) < 2:
+        return None
+    shared = set(sympy.Mul.make_args(terms[0]))
+    for t in terms[1:]:
+        shared &= set(sympy.Mul.make_args(t))
+    shared.discard(sympy.Integer(1))
+    return sympy.Mul(*shared) if shared else None
+
+
 def supported_line(target: str, found: Sequence[SupportedTerm], blocks: int) -> str:
     """The terminal's note on a target's supported additions."""
     listed = "; ".join(f"{f.term} (t {-f.paired_t:.1f}, loss {f.loss_change:+.1%})" for f in found)
+    common = common_factor([f.term for f in found])
+    if common is not None:
+        listed += f", each {common} times another factor"
     return (f"note: {target}: the flight also supports {listed} (each alone beside the chosen terms, paired "
             f"t over {blocks} blocks of the cross-validation); within the pick's tolerance, so the simpler "
             "model was kept: weigh such a term against the physics (a small true effect, or a stand-in for "

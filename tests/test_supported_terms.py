@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import sympy
 
 from bridge.errors import UserError
 from identification.body_frame import PRIMITIVE_SYMBOLS, expression_columns
@@ -13,7 +14,7 @@ from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
 from identification.cv_polish import move_candidate
 from identification.engine_settings import load_engine_settings
-from identification.supported_terms import supported_additions, supported_line
+from identification.supported_terms import SupportedTerm, common_factor, supported_additions, supported_line
 from identification.true_model import random_states
 
 S = PRIMITIVE_SYMBOLS
@@ -90,3 +91,13 @@ def test_a_negative_count_is_a_clear_error(tmp_path):
     path.write_text("selection:\n  report_supported: -1\n", encoding="utf-8")
     with pytest.raises(UserError, match="report_supported"):
         load_engine_settings(path)
+
+
+def test_the_note_names_a_factor_every_supported_term_shares():
+    """The racer's wx' (seed 89) named three look-alikes of the missing wy^2: the note says what they hold."""
+    u, wy = S["u1"], S["wy"]
+    terms = [S["u4"] * wy**2, wy**2 * sympy.sqrt(u**2 + S["u2"] ** 2), u * wy**2]
+    assert common_factor(terms) == wy**2
+    assert common_factor([S["wx"] * S["wz"], S["wy"]]) is None and common_factor(terms[:1]) is None
+    line = supported_line("dwx", [SupportedTerm(t, -5.2, -0.037) for t in terms], 30)
+    assert "each wy**2 times another factor" in line and line.count("(t 5.2, loss -3.7%)") == 3
