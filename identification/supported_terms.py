@@ -30,6 +30,8 @@ from identification.candidate import Candidate
 from identification.collinearity import term_shapes
 from identification.cross_validation import FoldedRows
 from identification.cv_polish import move_pool
+from identification.metrics import loss as loss_fn
+from identification.model_file import expression_to_string
 from identification.paired_loss import paired_loss_t
 
 # the additions scored by their paired t, lowest cross-validated loss first (each a fold refit's
@@ -48,7 +50,7 @@ class SupportedTerm:
 
     def as_dict(self) -> dict[str, object]:
         """For the model file."""
-        return {"term": str(self.term), "paired_t": round(self.paired_t, 2),
+        return {"term": expression_to_string(self.term), "paired_t": round(self.paired_t, 2),
                 "loss_change": round(self.loss_change, 4)}
 
 
@@ -64,7 +66,7 @@ def supported_additions(chosen: Candidate, candidates: Sequence[Candidate], fold
     have = set(shapes)
     others = [s for s in pool if s not in have]
     base = folded.predictions(shapes)
-    current = folded.terms_loss(shapes, kind)
+    current = loss_fn(folded.y, base, kind)  # the chosen structure's cross-validated loss (terms_loss)
     if not others or not np.isfinite(current) or current <= 0.0:
         return []
     losses = folded.addition_losses(shapes, others, kind)
@@ -92,10 +94,11 @@ def common_factor(terms: Sequence[sympy.Expr]) -> sympy.Expr | None:
 
 def supported_line(target: str, found: Sequence[SupportedTerm], blocks: int) -> str:
     """The terminal's note on a target's supported additions."""
-    listed = "; ".join(f"{f.term} (t {-f.paired_t:.1f}, loss {f.loss_change:+.1%})" for f in found)
+    listed = "; ".join(f"{expression_to_string(f.term)} (t {-f.paired_t:.1f}, loss {f.loss_change:+.1%})"
+                       for f in found)
     common = common_factor([f.term for f in found])
     if common is not None:
-        listed += f", each {common} times another factor"
+        listed += f", each {expression_to_string(common)} times another factor"
     return (f"note: {target}: the flight also supports {listed} (each alone beside the chosen terms, paired "
             f"t over {blocks} blocks of the cross-validation); within the pick's tolerance, so the simpler "
             "model was kept: weigh such a term against the physics (a small true effect, or a stand-in for "
