@@ -217,14 +217,11 @@ class FoldedRows:
         terms_loss answers those). None before prepare()."""
         if self._pool is None or not len(self.y):
             return None
-        base = [self._index.get(s) for s in current]
-        if any(i is None for i in base):
+        base, ok, idx = self._pool_indices(current, others)
+        if base is None:
             return None
-        extra = [self._index.get(s) for s in others]
-        ok = np.asarray([i is not None for i in extra], bool)
-        idx = np.asarray([-1 if i is None else i for i in extra], int)
-        swaps = np.full((len(base), len(extra)), np.nan)
-        adds = np.full(len(extra), np.nan)
+        swaps = np.full((len(base), len(others)), np.nan)
+        adds = np.full(len(others), np.nan)
         if not ok.any():
             return swaps, adds
         cols = idx[ok]
@@ -245,14 +242,24 @@ class FoldedRows:
         """The cross-validated loss of current + [o] for each o of others (P,) at once, as terms_loss gives
         it up to rounding; NaN where the batch cannot answer (a term not prepared, current's equations
         singular on a fold's rows, o (nearly) a combination of current's terms there)."""
+        out = np.full(len(others), np.nan)
+        if self._pool is None or not len(self.y):
+            return out
+        base, ok, idx = self._pool_indices(current, others)
+        if base is None or not ok.any():
+            return out
+        out[ok] = self._pool.added_losses(base, idx[ok], kind)
+        return out
+
+    def _pool_indices(self, current: Sequence[sympy.Expr], others: Sequence[sympy.Expr]
+                      ) -> tuple[list[int] | None, np.ndarray, np.ndarray]:
+        """current's columns in the pool (None when one is not prepared), which of others are prepared
+        (bool (P,)) and their columns (P,; -1 where not)."""
         base = [self._index.get(s) for s in current]
         extra = [self._index.get(s) for s in others]
-        out = np.full(len(others), np.nan)
         ok = np.asarray([i is not None for i in extra], bool)
-        if self._pool is None or not len(self.y) or any(i is None for i in base) or not ok.any():
-            return out
-        out[ok] = self._pool.added_losses(base, np.asarray([i for i in extra if i is not None], int), kind)
-        return out
+        idx = np.asarray([-1 if i is None else i for i in extra], int)
+        return (None if any(i is None for i in base) else base), ok, idx
 
     def terms_loss(self, shapes: Sequence[sympy.Expr], kind: str) -> float:
         """The cross-validated loss of a model of these terms; inf when a term is not finite."""

@@ -387,15 +387,17 @@ def identify(
             supported = supported_additions(chosen, candidates, folded, loss, settings.selection.min_t, extra,
                                             settings.selection.report_supported)
         elapsed = time.perf_counter() - start
-        metrics = {
-            split: table_metrics(yy, chosen.evaluate(xx)) if ops[split] is None
-            else weak_metrics(yy, chosen.evaluate(xx), ops[split])
-            for split, xx, yy in (("train", X[ok], y[ok]), ("pick", Xp[okp], yp[okp]),
-                                  ("validation", Xv[okv], yv[okv]))
-        }
-        if body_frame:  # the values the NED targets' metrics are composed from (all of each split's rows)
-            out["predictions"] = {split: chosen.evaluate(xx) for split, xx in
-                                  (("train", X), ("pick", Xp), ("validation", Xv))}
+        splits = (("train", X, y, ok), ("pick", Xp, yp, okp), ("validation", Xv, yv, okv))
+        # body frame: the values the NED targets' metrics are composed from (all of each split's rows), and
+        # this target's own metrics on its finite rows of them (one evaluation per split)
+        full = {split: chosen.evaluate(xx) for split, xx, _, _ in splits} if body_frame else None
+        metrics = {}
+        for split, xx, yy, mask in splits:
+            pred = chosen.evaluate(xx[mask]) if full is None else full[split][mask]
+            metrics[split] = (table_metrics(yy[mask], pred) if ops[split] is None
+                              else weak_metrics(yy[mask], pred, ops[split]))
+        if full is not None:
+            out["predictions"] = full
         timings = {k: round(v, 3) for k, v in getattr(eng, "timings", {}).items()}
         timings["total"] = round(elapsed, 3)
         out["timings"] = timings
